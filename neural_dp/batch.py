@@ -1,0 +1,85 @@
+"""The batch every simulator consumes: sharp image, signed CoC, depth, validity and the imaging params."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dp5k_common.dataset import Pair
+
+
+@dataclass
+class DPBatch:
+    """A batch of B pairs' simulator inputs (and, when known, the measured views).
+
+    Attributes:
+        sharp: (B, 3, H, W) float, linear, [0, 1].
+        coc_px: (B, 1, H, W) float, signed CoC diameter in output pixels (Eq. 6); 0 where invalid.
+        depth_mm: (B, 1, H, W) float, millimetres; 0 where invalid.
+        valid: (B, 1, H, W) bool, depth valid.
+        f_number: (B,) float.
+        focus_distance_mm: (B,) float.
+        focal_length_mm: (B,) float, thin-lens.
+        pixel_pitch_mm: (B,) float, of the output image.
+        focus_point_px: (B, 2) float, (x, y).
+        left: (B, 3, H, W) measured left view, or None.
+        right: (B, 3, H, W) measured right view, or None.
+        pair_ids: the pairs' ids, length B.
+    """
+
+    sharp: Tensor
+    coc_px: Tensor
+    depth_mm: Tensor
+    valid: Tensor
+    f_number: Tensor
+    focus_distance_mm: Tensor
+    focal_length_mm: Tensor
+    pixel_pitch_mm: Tensor
+    focus_point_px: Tensor
+    left: Tensor | None = None
+    right: Tensor | None = None
+    pair_ids: tuple[str, ...] = ()
+
+    @classmethod
+    def from_pairs(cls, pairs: Sequence[Pair], device: torch.device | str = "cpu") -> DPBatch:
+        """Stack loaded pairs (all of one image size) into a batch on ``device``."""
+        def img(a: np.ndarray) -> Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))
+
+        valid = [p.valid for p in pairs]
+        return cls(
+            sharp=torch.stack([img(p.sharp) for p in pairs]).to(device),
+            coc_px=torch.stack([torch.from_numpy(np.where(v, p.coc_px, 0).astype(np.float32))[None] for p, v in zip(pairs, valid)]).to(device),
+            depth_mm=torch.stack([torch.from_numpy(np.where(v, p.depth_mm, 0).astype(np.float32))[None] for p, v in zip(pairs, valid)]).to(device),
+            valid=torch.stack([torch.from_numpy(v)[None] for v in valid]).to(device),
+            f_number=torch.tensor([p.params.f_number for p in pairs], dtype=torch.float32, device=device),
+            focus_distance_mm=torch.tensor([p.params.focus_distance_mm for p in pairs], dtype=torch.float32, device=device),
+            focal_length_mm=torch.tensor([p.params.focal_length_mm for p in pairs], dtype=torch.float32, device=device),
+            pixel_pitch_mm=torch.tensor([p.params.pixel_pitch_mm for p in pairs], dtype=torch.float32, device=device),
+            focus_point_px=torch.tensor([p.params.focus_point_px for p in pairs], dtype=torch.float32, device=device),
+            left=torch.stack([img(p.left) for p in pairs]).to(device),
+            right=torch.stack([img(p.right) for p in pairs]).to(device),
+            pair_ids=tuple(p.pair_id for p in pairs),
+        )
+
+    def to(self, device: torch.device | str) -> DPBatch:
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.to(device) if isinstance(v, Tensor) else v
+        return DPBatch(**out)
+
+    def crop(self, y0: int, x0: int, h: int, w: int) -> DPBatch:
+        """A spatial crop of every image tensor; ``focus_point_px`` is shifted into crop coordinates."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, Tensor) and v.ndim == 4:
+                v = v[..., y0 : y0 + h, x0 : x0 + w]
+            out[f.name] = v
+        out["focus_point_px"] = self.focus_point_px - torch.tensor([x0, y0], dtype=self.focus_point_px.dtype, device=self.focus_point_px.device)
+        return DPBatch(**out)

@@ -1,0 +1,1 @@
+"""DP simulators behind one interface: ``simulate(batch) -> (left, right)``."""

@@ -1,0 +1,1 @@
+"""Shared test helpers (tiny data makers). Not a test module."""

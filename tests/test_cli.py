@@ -1,0 +1,48 @@
+"""The CLI's error policy: one line, distinct exit codes, tracebacks only with --verbose."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from dp5k_cli import main
+from tests.helpers.tiny_dataset import make_tiny_dataset
+
+
+def test_help_lists_commands() -> None:
+    result = CliRunner().invoke(main, ["--help"])
+    assert result.exit_code == 0
+    assert "check" in result.output and "dual-pixel" in result.output
+
+
+def test_bad_path_gives_one_line_and_exit_code(tmp_path: Path) -> None:
+    result = CliRunner().invoke(main, ["check", str(tmp_path / "missing")])
+    assert result.exit_code == 4
+    lines = [l for l in result.output.splitlines() if l.strip()]
+    assert len(lines) == 1 and lines[0].startswith("dp5k: error:") and "missing" in lines[0]
+    assert "Traceback" not in result.output
+
+
+def test_verbose_adds_traceback(tmp_path: Path) -> None:
+    result = CliRunner().invoke(main, ["-v", "check", str(tmp_path / "missing")])
+    assert result.exit_code == 4 and "Traceback" in result.output
+
+
+def test_check_valid_dataset_summarises(tmp_path: Path) -> None:
+    make_tiny_dataset(tmp_path / "ds", scenes=3)
+    result = CliRunner().invoke(main, ["-q", "check", str(tmp_path / "ds")])
+    assert result.exit_code == 0, result.output
+    assert "3 pairs" in result.output
+
+
+def test_check_detects_scene_crossing_splits(tmp_path: Path) -> None:
+    import json
+
+    make_tiny_dataset(tmp_path / "ds", scenes=3)
+    p = tmp_path / "ds/pairs/s1_cam0_f1.8/params.json"
+    params = json.loads(p.read_text())
+    params["scene"] = "s0"
+    p.write_text(json.dumps(params))
+    result = CliRunner().invoke(main, ["-q", "check", str(tmp_path / "ds")])
+    assert result.exit_code == 4 and "appear in both" in result.output
