@@ -1,0 +1,1 @@
+"""ChArUco board definition, detection and stereo calibration, shared by processing and depth validation."""
