@@ -1,0 +1,71 @@
+"""ChArUco detection with OpenCV 5.0's object API (``CharucoDetector.detectBoard``, ``board.matchImagePoints``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .board import DEFAULT_BOARD, BoardSpec
+
+
+@dataclass(frozen=True)
+class CharucoDetection:
+    """ChArUco corners found in one image.
+
+    Attributes:
+        ids: (N,) int32 corner ids (OpenCV's inner-corner order).
+        image_px: (N, 2) float32 corner positions in image pixels (x, y).
+        board_m: (N, 3) float32 the same corners in the board frame, metres (z = 0).
+        n_markers: number of ArUco markers found.
+    """
+
+    ids: NDArray[np.int32]
+    image_px: NDArray[np.float32]
+    board_m: NDArray[np.float32]
+    n_markers: int
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def subset(self, ids: NDArray[np.int32]) -> CharucoDetection:
+        """The detection restricted to ``ids`` (in that order; all must be present)."""
+        index = {int(i): k for k, i in enumerate(self.ids)}
+        sel = np.array([index[int(i)] for i in ids], dtype=np.int64)
+        return CharucoDetection(self.ids[sel], self.image_px[sel], self.board_m[sel], self.n_markers)
+
+
+def _to_uint8(image: NDArray) -> NDArray[np.uint8]:
+    """Gray uint8 from an 8-bit, 16-bit or float image (min-max stretched over the 0.1..99.9 percentiles)."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img.mean(axis=2) if img.dtype != np.uint8 else cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    if img.dtype == np.uint8:
+        return img
+    img = img.astype(np.float32)
+    lo, hi = np.percentile(img, (0.1, 99.9))
+    if hi <= lo:
+        hi = lo + 1.0
+    return np.clip((img - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+def detect_charuco(image: NDArray, board: BoardSpec = DEFAULT_BOARD) -> CharucoDetection | None:
+    """Detect the ChArUco board in ``image`` (gray or RGB, any dtype); None when no corner is found.
+
+    Args:
+        image: (H, W) or (H, W, 3) image; linear raw data is stretched to 8 bit for detection.
+        board: the board definition.
+    """
+    gray = _to_uint8(image)
+    cv_board = board.cv_board()
+    det = cv2.aruco.CharucoDetector(cv_board)
+    cc, ci, mc, _mi = det.detectBoard(gray)
+    if ci is None or cc is None or len(ci) == 0:
+        return None
+    cc = np.asarray(cc, dtype=np.float32).reshape(-1, 2)
+    ci = np.asarray(ci, dtype=np.int32).reshape(-1)
+    obj, imgp = cv_board.matchImagePoints(cc.reshape(-1, 1, 2), ci.reshape(-1, 1))
+    obj = np.asarray(obj, dtype=np.float32).reshape(-1, 3)
+    return CharucoDetection(ci, cc, obj, 0 if mc is None else len(mc))
