@@ -1,0 +1,139 @@
+"""Per-pixel kernel application (kernel-prediction networks) and dense PSF convolution.
+
+Two ways of blurring live here:
+
+* :func:`apply_kernels` applies a *different* K x K kernel at every pixel (the Neural DP Simulator's
+  neural PSF maps) by shift-and-accumulate: K^2 fused multiply-adds over shifted views of a replicate-
+  padded input. It keeps only the padded input and the weights alive for backward, about 3x less memory
+  than ``F.unfold`` (``_apply_kernels_unfold`` is kept as the reference the tests compare against).
+* :func:`convolve_same` convolves a whole image with one PSF (true convolution, zero padding), switching
+  to FFT for large kernels; the layered peer simulators use it.
+
+Kernel layout convention: a flattened kernel index ``t = i * K + j`` is row ``i`` (y offset ``i - K//2``)
+and column ``j`` (x offset ``j - K//2``). The weights are a *gather* kernel:
+
+.. math::
+    out(y, x) = \\sum_{i,j} w_{ij}(y, x) \\; in(y + i - K/2, x + j - K/2)
+
+so a weight mass at ``j < K//2`` reads pixels to the left, i.e. it moves content to the **right**.
+:func:`flip_lr` mirrors every kernel about its vertical axis (``j -> K-1-j``), which is the DP
+relation ``H_r = hflip(H_l)`` of Eq. (2).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from dp5k_common.errors import BadInputError
+
+
+def _kernel_size(weights: Tensor, dim: int) -> int:
+    k2 = weights.shape[dim]
+    k = int(round(math.sqrt(k2)))
+    if k * k != k2 or k % 2 == 0:
+        raise BadInputError(f"kernel axis has {k2} taps; need K*K with K odd", where="apply_kernels")
+    return k
+
+
+def apply_kernels(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> Tensor:
+    """Apply a per-pixel K x K gather kernel to an image (shift-and-accumulate).
+
+    Args:
+        x: (B, C, H, W) image.
+        weights: (B, K*K, H, W) one kernel per pixel shared by all channels, or
+            (B, C, K*K, H, W) one kernel per pixel and channel. Not normalised here (the model's
+            softmax does that), so handcrafted kernels can be applied too.
+        padding: ``"replicate"`` (default; keeps sum-to-one kernels from darkening the border),
+            ``"reflect"`` or ``"zeros"``.
+
+    Returns:
+        (B, C, H, W) :math:`out(y,x) = \\sum_{ij} w_{ij}(y,x)\\, x(y+i-r, x+j-r)`, ``r = K // 2``.
+
+    Example:
+        >>> x = torch.arange(5.0).view(1, 1, 1, 5).expand(1, 1, 3, 5).contiguous()
+        >>> w = torch.zeros(1, 9, 3, 5); w[:, 3] = 1.0  # tap (i=1, j=0): read x - 1
+        >>> apply_kernels(x, w)[0, 0, 1].tolist()
+        [0.0, 0.0, 1.0, 2.0, 3.0]
+    """
+    if x.ndim != 4:
+        raise BadInputError(f"x must be (B, C, H, W), got shape {tuple(x.shape)}", where="apply_kernels")
+    per_channel = weights.ndim == 5
+    k = _kernel_size(weights, 2 if per_channel else 1)
+    B, C, H, W = x.shape
+    if weights.shape[0] != B or weights.shape[-2:] != (H, W) or (per_channel and weights.shape[1] != C):
+        raise BadInputError(
+            f"weights {tuple(weights.shape)} do not match image {tuple(x.shape)}", where="apply_kernels"
+        )
+    r = k // 2
+    mode = "constant" if padding == "zeros" else padding
+    xp = F.pad(x, (r, r, r, r), mode=mode)
+    out = torch.zeros_like(x)
+    for i in range(k):
+        for j in range(k):
+            w = weights[:, :, i * k + j] if per_channel else weights[:, i * k + j : i * k + j + 1]
+            out = out + w * xp[:, :, i : i + H, j : j + W]
+    return out
+
+
+def _apply_kernels_unfold(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> Tensor:
+    """Reference implementation of :func:`apply_kernels` with ``F.unfold`` (memory hungry; tests only)."""
+    per_channel = weights.ndim == 5
+    k = _kernel_size(weights, 2 if per_channel else 1)
+    B, C, H, W = x.shape
+    r = k // 2
+    mode = "constant" if padding == "zeros" else padding
+    cols = F.unfold(F.pad(x, (r, r, r, r), mode=mode), k).view(B, C, k * k, H, W)
+    w = weights if per_channel else weights[:, None]
+    return (cols * w).sum(2)
+
+
+def flip_lr(weights: Tensor) -> Tensor:
+    """Mirror every flattened K x K kernel left-right (``j -> K-1-j``): Eq. (2)'s ``hflip``.
+
+    Args:
+        weights: (B, K*K, H, W) or (B, C, K*K, H, W).
+
+    Returns:
+        Same shape; a kernel that moves content left moves it right after the flip.
+    """
+    per_channel = weights.ndim == 5
+    dim = 2 if per_channel else 1
+    k = _kernel_size(weights, dim)
+    shape = weights.shape
+    grid = weights.reshape(*shape[:dim], k, k, *shape[dim + 1 :])
+    return grid.flip(dim + 1).reshape(shape)
+
+
+def convolve_same(x: Tensor, psf: Tensor, *, fft_above: int = 21) -> Tensor:
+    """True 2-D convolution of every channel with one PSF, zero padding, output the input's size.
+
+    .. math::
+        out(y, x) = \\sum_{u,v} psf(v, u)\\, x(y - v, x - u)
+
+    with ``(u, v)`` offsets from the PSF centre: a PSF mass at ``u < 0`` moves content left.
+
+    Args:
+        x: (B, C, H, W).
+        psf: (k, k) with k odd, on x's device and dtype.
+        fft_above: kernels larger than this many taps per side use FFT instead of ``conv2d``.
+
+    Returns:
+        (B, C, H, W).
+    """
+    k = psf.shape[-1]
+    if psf.ndim != 2 or psf.shape[0] != k or k % 2 == 0:
+        raise BadInputError(f"psf must be square with odd size, got {tuple(psf.shape)}", where="convolve_same")
+    B, C, H, W = x.shape
+    r = k // 2
+    if k <= fft_above:
+        weight = psf.flip(0, 1).to(x.dtype)[None, None].expand(C, 1, k, k)
+        return F.conv2d(F.pad(x, (r, r, r, r)), weight, groups=C)
+    Hp, Wp = H + 2 * r, W + 2 * r
+    X = torch.fft.rfft2(x, s=(Hp, Wp))
+    K = torch.fft.rfft2(psf.to(x.dtype), s=(Hp, Wp))
+    full = torch.fft.irfft2(X * K, s=(Hp, Wp))
+    return full[..., r : r + H, r : r + W]

@@ -1,0 +1,87 @@
+"""The Neural DP Simulator behind the common :class:`DPSimulator` interface (tiled inference)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from dp5k_common.errors import BadInputError
+
+from ..batch import DPBatch
+from ..model import ModelConfig, UNetKPN, normalize_depth, render_views
+from .interface import DPSimulator
+
+
+def model_inputs(batch: DPBatch, coc_scale_px: float) -> Tensor:
+    """The network input (B, 5, H, W): sharp, CoC / coc_scale_px (0 where invalid), normalised depth."""
+    coc = torch.where(batch.valid, batch.coc_px, torch.zeros_like(batch.coc_px)) / coc_scale_px
+    return torch.cat([batch.sharp, coc, normalize_depth(batch.depth_mm, batch.valid)], dim=1)
+
+
+def _tiles(n: int, tile: int) -> list[int]:
+    return list(range(0, max(n - tile, 0) + 1, tile)) + ([n - tile] if n > tile and (n - tile) % tile else [])
+
+
+class NeuralDPSimulator(DPSimulator):
+    """U-Net kernel-prediction DP simulator (Sec. 4.1); see :mod:`neural_dp.model`.
+
+    Args:
+        cfg: network configuration.
+        net: an existing network (e.g. during training); built from ``cfg`` when None.
+    """
+
+    name = "neural"
+
+    def __init__(self, cfg: ModelConfig | None = None, net: UNetKPN | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or (net.cfg if net is not None else ModelConfig())
+        self.net = net if net is not None else UNetKPN(self.cfg)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> NeuralDPSimulator:
+        """Load a checkpoint written by ``dp5k train`` (safely: ``weights_only=True``)."""
+        if not os.path.isfile(path):
+            raise BadInputError("checkpoint not found", where=path)
+        try:
+            state: dict[str, Any] = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - any unpickling problem is a bad file
+            raise BadInputError(f"not a readable dp5k checkpoint ({type(exc).__name__}: {exc})", where=path) from None
+        if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
+            raise BadInputError("not a dp5k Neural DP checkpoint (no 'model' / 'model_config')", where=path)
+        known = {f.name for f in fields(ModelConfig)}
+        cfg = ModelConfig(**{k: v for k, v in state["model_config"].items() if k in known})
+        sim = cls(cfg)
+        sim.net.load_state_dict(state["model"])
+        sim.eval()
+        return sim
+
+    def config_dict(self) -> dict[str, Any]:
+        return asdict(self.cfg)
+
+    def forward(self, batch: DPBatch) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        inputs = model_inputs(batch, self.cfg.coc_scale_px)
+        H, W = batch.sharp.shape[-2:]
+        tile = self.cfg.tile_px
+        if self.training or tile <= 0 or (H <= tile and W <= tile):
+            return render_views(self.net, batch.sharp, inputs)
+        return self._forward_tiled(batch.sharp, inputs, tile, self.cfg.tile_margin_px)
+
+    def _forward_tiled(self, sharp: Tensor, inputs: Tensor, tile: int, margin: int) -> tuple[Tensor, Tensor]:
+        """Predict tile by tile with ``margin`` px of context; peak memory is set by the tile, not the image."""
+        H, W = sharp.shape[-2:]
+        left = torch.empty_like(sharp)
+        right = torch.empty_like(sharp)
+        th, tw = min(tile, H), min(tile, W)
+        for y0 in _tiles(H, th):
+            for x0 in _tiles(W, tw):
+                ya, yb = max(0, y0 - margin), min(H, y0 + th + margin)
+                xa, xb = max(0, x0 - margin), min(W, x0 + tw + margin)
+                l, r = render_views(self.net, sharp[..., ya:yb, xa:xb], inputs[..., ya:yb, xa:xb])
+                sy, sx = y0 - ya, x0 - xa
+                left[..., y0 : y0 + th, x0 : x0 + tw] = l[..., sy : sy + th, sx : sx + tw]
+                right[..., y0 : y0 + th, x0 : x0 + tw] = r[..., sy : sy + th, sx : sx + tw]
+        return left, right

@@ -1,0 +1,68 @@
+"""Per-pixel kernel application and the DP mirror (Eq. 2's hflip)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from neural_dp.kernels import _apply_kernels_unfold, apply_kernels, convolve_same, flip_lr
+
+
+def _delta(B: int, K: int, H: int, W: int, i: int, j: int) -> torch.Tensor:
+    w = torch.zeros(B, K * K, H, W, dtype=torch.float64)
+    w[:, i * K + j] = 1.0
+    return w
+
+
+def test_shift_and_accumulate_equals_unfold_reference() -> None:
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 12, 17, dtype=torch.float64)
+    w = torch.softmax(torch.randn(2, 25, 12, 17, dtype=torch.float64), 1)
+    torch.testing.assert_close(apply_kernels(x, w), _apply_kernels_unfold(x, w))
+    wc = torch.softmax(torch.randn(2, 3, 25, 12, 17, dtype=torch.float64), 2)
+    torch.testing.assert_close(apply_kernels(x, wc), _apply_kernels_unfold(x, wc))
+
+
+def test_gradcheck() -> None:
+    torch.manual_seed(1)
+    x = torch.rand(1, 2, 5, 6, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(1, 9, 5, 6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(apply_kernels, (x, w))
+
+
+def test_kernel_that_shifts_left_view_left_shifts_right_view_right() -> None:
+    """The deliberate choice against the released code's row-axis mirror: the mirror is along x."""
+    x = torch.zeros(1, 1, 9, 15, dtype=torch.float64)
+    x[..., 4, 7] = 1.0
+    w_left = _delta(1, 5, 9, 15, 2, 4)  # gathers from x + 2: content moves 2 px LEFT
+    left = apply_kernels(x, w_left)
+    right = apply_kernels(x, flip_lr(w_left))
+    assert left[0, 0].nonzero().tolist() == [[4, 5]]
+    assert right[0, 0].nonzero().tolist() == [[4, 9]]
+    # a row (y) mirror, as in the released code, would leave the two views identical here
+    w_rowflip = w_left.view(1, 5, 5, 9, 15).flip(1).reshape(1, 25, 9, 15)
+    assert torch.equal(apply_kernels(x, w_rowflip), left)
+
+
+def test_flip_lr_is_an_involution_and_keeps_rows() -> None:
+    w = torch.rand(2, 3, 25, 4, 4)
+    assert torch.equal(flip_lr(flip_lr(w)), w)
+    g = w.view(2, 3, 5, 5, 4, 4)
+    torch.testing.assert_close(flip_lr(w).view(2, 3, 5, 5, 4, 4)[:, :, 1, 0], g[:, :, 1, 4])
+
+
+def test_replicate_padding_keeps_constant_image_constant() -> None:
+    x = torch.full((1, 3, 6, 7), 0.3)
+    w = torch.softmax(torch.randn(1, 25, 6, 7), 1)
+    torch.testing.assert_close(apply_kernels(x, w), x)
+
+
+@pytest.mark.parametrize("k", [5, 31])
+def test_convolve_same_is_true_convolution_both_paths(k: int) -> None:
+    x = torch.zeros(1, 1, 40, 50, dtype=torch.float64)
+    x[..., 20, 25] = 1.0
+    psf = torch.zeros(k, k, dtype=torch.float64)
+    psf[k // 2, 0] = 1.0  # mass at u = -k//2: content moves left
+    out = convolve_same(x, psf)
+    assert out[0, 0].argmax().item() == 20 * 50 + 25 - k // 2
+    assert float(out.sum()) == pytest.approx(1.0)
