@@ -1,0 +1,270 @@
+"""Canon EOS remote capture over a PTP session (the vendor extension, written here).
+
+Sequence (after libgphoto2's camera_prepare_canon_eos_capture / trigger / download, see
+docs/capture.md): OpenSession(1) with tid 0, GetDeviceInfo, SetRemoteMode(1), SetEventMode(1), GetEvent
+until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableShots > 0, image quality
+RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
+DoAf, AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
+RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
+(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. Never CloseSession (a 5D
+Mark IV answers OperationNotSupported to everything after it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from dp5k_common.errors import DeviceError
+
+from .ptp.codes import (
+    CANON_VID,
+    CAPTURE_DEST_PC,
+    EVF_OUTPUT_PC,
+    EosEvent,
+    EosProp,
+    Op,
+    av_code,
+    iso_code,
+    tv_code,
+)
+from .ptp.datasets import DeviceInfo
+from .ptp.eos_events import EosRecord, parse_events
+from .ptp.errors import DeviceBusyError, ResponseError
+from .ptp.session import PTPSession
+
+log = logging.getLogger(__name__)
+
+CHUNK_BYTES = 1 << 20
+RAW_IMAGE_FORMAT = (6, 0, 4)  # kind RAW, size L, compression lossless
+DONT_CLOSE_SESSION = {(CANON_VID, 0x3281)}  # EOS 5D Mark IV (libgphoto2 PTP_DONT_CLOSE_SESSION)
+
+
+@dataclass(frozen=True)
+class CaptureTiming:
+    """Bounds of the capture loop.
+
+    Attributes:
+        prop_echo_s: how long to wait for GetEvent to echo a property we set.
+        object_s: how long to wait for the new object after a release (libgphoto2: 90 s).
+        poll_s: pause between GetEvent polls.
+        keepalive_s: KeepDeviceOn interval while waiting.
+        af_settle_s: wait after DoAf before AfCancel.
+    """
+
+    prop_echo_s: float = 5.0
+    object_s: float = 90.0
+    poll_s: float = 0.02
+    keepalive_s: float = 10.0
+    af_settle_s: float = 0.5
+
+
+@dataclass
+class Download:
+    """One downloaded object: its camera file name and bytes."""
+
+    filename: str
+    data: bytes
+    handle: int
+
+
+@dataclass
+class EosState:
+    """What GetEvent has told us so far."""
+
+    props: dict[int, int | str] = field(default_factory=dict)
+    avail: dict[int, list[int]] = field(default_factory=dict)
+    busy: bool = False
+
+
+class EosCamera:
+    """One Canon EOS body in remote mode.
+
+    Args:
+        session: an unopened PTP session on the body's transport.
+        usb_id: (vendor, product) from the USB descriptor; identifies Canon (DeviceInfo says vendor 6).
+        timing: bounds of the capture loop.
+    """
+
+    def __init__(self, session: PTPSession, usb_id: tuple[int, int] | None = None, timing: CaptureTiming | None = None) -> None:
+        self.session = session
+        self.usb_id = usb_id
+        self.timing = timing or CaptureTiming()
+        self.state = EosState()
+        self.info: DeviceInfo | None = None
+        self.name = session.name
+        self._last_keepalive = time.monotonic()
+        self.focus_point_px: tuple[int, int] | None = None
+        self.pending: list[EosRecord] = []
+
+    # ------------------------------------------------------------------ setup
+    def open(self) -> DeviceInfo:
+        """Open the session and put the body in remote + event mode, capture to PC, RAW quality."""
+        self.session.open_session(1)
+        self.info = self.session.get_device_info()
+        if self.usb_id is not None and self.usb_id[0] != CANON_VID:
+            raise DeviceError(f"not a Canon body (USB vendor 0x{self.usb_id[0]:04x})", where=self.name)
+        if self.usb_id is None and "Canon" not in self.info.manufacturer:
+            raise DeviceError(f"not a Canon body (manufacturer {self.info.manufacturer!r})", where=self.name)
+        if self.usb_id in DONT_CLOSE_SESSION:
+            self.session.config = dataclasses.replace(self.session.config, close_session=False)
+        for op in (Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_EVENT_MODE, Op.EOS_GET_EVENT, Op.EOS_SET_DEVICE_PROP_VALUE_EX,
+                   Op.EOS_REMOTE_RELEASE_ON, Op.GET_PARTIAL_OBJECT):
+            if op not in self.info.operations:
+                raise DeviceError(f"body does not support operation 0x{op:04X} ({Op(op).name})", where=self.name)
+        self.session.transaction(Op.EOS_SET_REMOTE_MODE, (1,))
+        self.session.transaction(Op.EOS_SET_EVENT_MODE, (1,))
+        self.poll_events()
+        self.set_capture_to_pc()
+        self.set_raw_quality()
+        return self.info
+
+    def close(self) -> None:
+        """Leave remote mode (event mode 0, remote mode 0). Never CloseSession on bodies that break on it."""
+        try:
+            self.session.transaction(Op.EOS_SET_EVENT_MODE, (0,))
+            self.session.transaction(Op.EOS_SET_REMOTE_MODE, (0,))
+            self.session.close_session()
+        except DeviceError as exc:
+            log.warning("%s: leaving remote mode failed: %s", self.name, exc)
+
+    # ------------------------------------------------------------------ events
+    def poll_events(self) -> list[EosRecord]:
+        """One GetEvent; applies property changes to :attr:`state`; object events go to :attr:`pending`."""
+        data = self.session.transaction(Op.EOS_GET_EVENT, data_in=True).data
+        records = parse_events(data, where=self.name)
+        for rec in records:
+            if rec.code == EosEvent.PROP_VALUE_CHANGED and rec.prop is not None:
+                self.state.props[rec.prop] = rec.value  # type: ignore[assignment]
+            elif rec.code == EosEvent.AVAIL_LIST_CHANGED and rec.prop is not None:
+                self.state.avail[rec.prop] = rec.values
+            elif rec.code == EosEvent.CAMERA_STATUS_CHANGED:
+                self.state.busy = rec.status == 1
+            elif rec.code in (EosEvent.REQUEST_OBJECT_TRANSFER, EosEvent.OBJECT_ADDED_EX):
+                self.pending.append(rec)
+        return records
+
+    def keep_alive(self) -> None:
+        """KeepDeviceOn (0x911D) when the interval has passed."""
+        now = time.monotonic()
+        if now - self._last_keepalive >= self.timing.keepalive_s:
+            self.session.transaction(Op.EOS_KEEP_DEVICE_ON)
+            self._last_keepalive = now
+
+    def _wait(self, what: str, done: Callable[[], bool], timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.poll_events()
+            if done():
+                return
+            if time.monotonic() > deadline:
+                raise DeviceError(f"{what}: no confirmation from the body within {timeout_s:g} s", where=self.name)
+            self.keep_alive()
+            time.sleep(self.timing.poll_s)
+
+    # ------------------------------------------------------------------ properties
+    def set_prop(self, prop: int, value: int, what: str) -> None:
+        """SetDevicePropValueEx for an integer property; check the allowed list; wait for the echo."""
+        allowed = self.state.avail.get(prop)
+        if allowed is not None and value not in allowed:
+            raise DeviceError(f"{what}: value 0x{value:X} is not offered by the body (allowed: {[hex(v) for v in allowed]})", where=self.name)
+        payload = struct.pack("<III", 12, prop, value)
+        self.session.transaction(Op.EOS_SET_DEVICE_PROP_VALUE_EX, data_out=payload)
+        self._wait(f"set {what}", lambda: self.state.props.get(prop) == value, self.timing.prop_echo_s)
+
+    def set_aperture(self, f_number: float) -> None:
+        self.set_prop(EosProp.APERTURE, av_code(f_number), f"aperture f/{f_number:g}")
+
+    def set_shutter(self, shutter_s: float) -> None:
+        self.set_prop(EosProp.SHUTTER_SPEED, tv_code(shutter_s), f"shutter {shutter_s:g} s")
+
+    def set_iso(self, iso: int) -> None:
+        self.set_prop(EosProp.ISO, iso_code(iso), f"ISO {iso}")
+
+    def set_exposure(self, f_number: float, shutter_s: float, iso: int) -> None:
+        """Set Av, Tv and ISO (each only if it differs from what the body last reported)."""
+        if self.state.props.get(EosProp.APERTURE) != av_code(f_number):
+            self.set_aperture(f_number)
+        if self.state.props.get(EosProp.SHUTTER_SPEED) != tv_code(shutter_s):
+            self.set_shutter(shutter_s)
+        if self.state.props.get(EosProp.ISO) != iso_code(iso):
+            self.set_iso(iso)
+
+    def set_capture_to_pc(self) -> None:
+        """CaptureDestination = PC (4), PCHDDCapacity, then wait until AvailableShots > 0."""
+        if self.state.props.get(EosProp.CAPTURE_DESTINATION) != CAPTURE_DEST_PC:
+            self.set_prop(EosProp.CAPTURE_DESTINATION, CAPTURE_DEST_PC, "capture destination PC")
+        self.session.transaction(Op.EOS_PC_HDD_CAPACITY, (0x0FFFFFFF, 0x1000, 1))
+        self._wait("PC capture", lambda: int(self.state.props.get(EosProp.AVAILABLE_SHOTS, 0) or 0) > 0, self.timing.prop_echo_s)
+
+    def set_raw_quality(self) -> None:
+        """ImageFormat = one full-size RAW (Dual Pixel RAW itself is a menu setting; files are verified)."""
+        kind, size, comp = RAW_IMAGE_FORMAT
+        payload = struct.pack("<IIIIIII", 28, EosProp.IMAGE_FORMAT, 1, 0x10, kind, size, comp)
+        self.session.transaction(Op.EOS_SET_DEVICE_PROP_VALUE_EX, data_out=payload)
+        want = (kind << 16) | (size << 8) | comp
+        self._wait("image quality RAW", lambda: self.state.props.get(EosProp.IMAGE_FORMAT) == want, self.timing.prop_echo_s)
+
+    # ------------------------------------------------------------------ focus
+    def focus_at(self, point_px: tuple[int, int]) -> None:
+        """Autofocus once at ``point_px`` (raw pixels): live view on, ZoomPosition, DoAf, AfCancel, live view off."""
+        x, y = int(round(point_px[0])), int(round(point_px[1]))
+        self.set_prop(EosProp.EVF_OUTPUT_DEVICE, EVF_OUTPUT_PC, "live view on")
+        self.session.transaction(Op.EOS_ZOOM_POSITION, (x, y))
+        self.session.transaction(Op.EOS_DO_AF)
+        deadline = time.monotonic() + self.timing.af_settle_s
+        while time.monotonic() < deadline:
+            self.poll_events()
+            time.sleep(self.timing.poll_s)
+        self.session.transaction(Op.EOS_AF_CANCEL)
+        self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        self.focus_point_px = (x, y)
+
+    # ------------------------------------------------------------------ capture
+    def release(self) -> None:
+        """Full press without AF, then release (RemoteReleaseOn(3, 1), RemoteReleaseOff(3))."""
+        self.poll_events()
+        if self.state.busy:
+            self._wait("release", lambda: not self.state.busy, self.timing.object_s)
+        self.session.transaction(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
+        self.session.transaction(Op.EOS_REMOTE_RELEASE_OFF, (3,))
+
+    def wait_object(self) -> EosRecord:
+        """Poll GetEvent (with keep-alive) until the body announces the new object."""
+        self._wait("wait for the new image", lambda: bool(self.pending), self.timing.object_s)
+        return self.pending.pop(0)
+
+    def download(self, rec: EosRecord) -> Download:
+        """Download the announced object in 1 MiB GetPartialObject chunks; release it from the body.
+
+        A PC capture ends with TransferComplete (the body frees its buffer); a card capture is deleted.
+        """
+        assert rec.handle is not None
+        total = int(rec.size or 0)
+        if total <= 0:
+            total = self.session.get_object_info(rec.handle).compressed_size
+        buf = bytearray()
+        while len(buf) < total:
+            chunk = self.session.get_partial_object(rec.handle, len(buf), min(CHUNK_BYTES, total - len(buf)))
+            if not chunk:
+                raise DeviceError(f"download of {rec.filename}: body sent 0 bytes at offset {len(buf)}", where=self.name)
+            buf += chunk
+            self.keep_alive()
+        if rec.code == EosEvent.REQUEST_OBJECT_TRANSFER:
+            self.session.transaction(Op.EOS_TRANSFER_COMPLETE, (rec.handle,))
+        else:
+            self.session.delete_object(rec.handle)
+        return Download(rec.filename or f"{rec.handle:08x}", bytes(buf), rec.handle)
+
+    def capture(self, f_number: float, shutter_s: float, iso: int) -> Download:
+        """Set the exposure, release without refocusing and download the new raw file."""
+        self.set_exposure(f_number, shutter_s, iso)
+        self.release()
+        return self.download(self.wait_object())
+
+
+__all__ = ["EosCamera", "CaptureTiming", "Download", "DeviceBusyError", "ResponseError"]

@@ -1,0 +1,1 @@
+"""PTP (ISO 15740) over USB, written here: containers, datasets, transport, sessions, typed errors."""

@@ -1,0 +1,168 @@
+"""The USB side of PTP: one class that moves bytes over a Still Image interface with pyusb.
+
+Finds the class-6 interface's bulk-OUT, bulk-IN and interrupt-IN endpoints, writes commands and data
+(with a zero-length packet when a transfer is a multiple of wMaxPacketSize), reads, and issues the
+Still Image class requests (Cancel 0x64, Device Reset 0x66, Get Device Status 0x67). pyusb/libusb
+errors become typed dp5k errors that name the device: ENODEV -> :class:`DisconnectedError`, a timeout ->
+:class:`PTPTimeoutError`, EPIPE -> :class:`StallError`.
+"""
+
+from __future__ import annotations
+
+import errno as errno_mod
+import struct
+from typing import Any, Protocol
+
+import usb.core
+import usb.util
+
+from dp5k_common.errors import DeviceError
+
+from .codes import PTP_INTERFACE_CLASS
+from .errors import DisconnectedError, PTPTimeoutError, ProtocolError, StallError
+
+REQ_CANCEL = 0x64
+REQ_GET_EXTENDED_EVENT = 0x65
+REQ_DEVICE_RESET = 0x66
+REQ_GET_DEVICE_STATUS = 0x67
+CANCEL_EVENT_CODE = 0x4001
+
+
+class Transport(Protocol):
+    """What a :class:`~dp5k_capture.ptp.session.PTPSession` needs from the wire."""
+
+    name: str
+    max_packet: int
+
+    def write(self, data: bytes, timeout_ms: int) -> None: ...
+    def read(self, size: int, timeout_ms: int) -> bytes: ...
+    def read_event(self, size: int, timeout_ms: int) -> bytes: ...
+    def cancel(self, tid: int) -> None: ...
+    def device_status(self) -> int: ...
+    def device_reset(self) -> None: ...
+    def clear_halt(self) -> None: ...
+
+
+def map_usb_error(exc: BaseException, name: str, step: str) -> DeviceError:
+    """Translate a pyusb exception into a dp5k device error naming ``name`` (device) and ``step``."""
+    if isinstance(exc, usb.core.USBTimeoutError):
+        return PTPTimeoutError(f"{step}: timed out", where=name)
+    err = getattr(exc, "errno", None)
+    backend = getattr(exc, "backend_error_code", None)
+    if err == errno_mod.ENODEV or backend == -4 or "No such device" in str(exc):
+        return DisconnectedError(f"{step}: device disconnected ({exc})", where=name)
+    if err == errno_mod.EPIPE or backend == -9 or "Pipe error" in str(exc):
+        return StallError(f"{step}: endpoint stalled ({exc})", where=name)
+    if err == errno_mod.ETIMEDOUT or backend == -7:
+        return PTPTimeoutError(f"{step}: timed out", where=name)
+    return DeviceError(f"{step}: USB error ({exc})", where=name)
+
+
+class UsbTransport:
+    """PTP bulk/interrupt pipes of one USB Still Image device (a pyusb :class:`usb.core.Device`).
+
+    Args:
+        device: the pyusb device (real libusb backend, umockdev, or the simulated backend).
+        name: how errors name the device (e.g. ``"cam0 (Canon EOS 5D Mark IV, serial 0123)"``).
+    """
+
+    def __init__(self, device: usb.core.Device, name: str | None = None) -> None:
+        self.device = device
+        self.name = name or f"usb {device.idVendor:04x}:{device.idProduct:04x}"
+        try:
+            cfg = device.get_active_configuration()
+        except usb.core.USBError:
+            try:
+                device.set_configuration()
+            except usb.core.USBError as exc:
+                raise map_usb_error(exc, self.name, "set configuration") from None
+            cfg = device.get_active_configuration()
+        intf = usb.util.find_descriptor(cfg, bInterfaceClass=PTP_INTERFACE_CLASS)
+        if intf is None:
+            raise ProtocolError("no Still Image (class 6) interface", where=self.name)
+        self.interface = intf.bInterfaceNumber
+
+        def ep(direction: int, kind: int) -> Any:
+            return usb.util.find_descriptor(
+                intf,
+                custom_match=lambda e: usb.util.endpoint_direction(e.bEndpointAddress) == direction
+                and usb.util.endpoint_type(e.bmAttributes) == kind,
+            )
+
+        self.ep_out = ep(usb.util.ENDPOINT_OUT, usb.util.ENDPOINT_TYPE_BULK)
+        self.ep_in = ep(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_BULK)
+        self.ep_int = ep(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_INTR)
+        if self.ep_out is None or self.ep_in is None:
+            raise ProtocolError("Still Image interface lacks bulk IN/OUT endpoints", where=self.name)
+        self.max_packet = int(self.ep_in.wMaxPacketSize)
+        try:
+            if device.is_kernel_driver_active(self.interface):
+                device.detach_kernel_driver(self.interface)
+        except (NotImplementedError, usb.core.USBError):
+            pass
+        try:
+            usb.util.claim_interface(device, self.interface)
+        except usb.core.USBError as exc:
+            raise map_usb_error(exc, self.name, "claim interface") from None
+
+    def write(self, data: bytes, timeout_ms: int) -> None:
+        try:
+            n = self.ep_out.write(data, timeout_ms)
+            if n != len(data):
+                raise DeviceError(f"bulk OUT wrote {n} of {len(data)} bytes", where=self.name)
+            if data and len(data) % int(self.ep_out.wMaxPacketSize) == 0:
+                self.ep_out.write(b"", timeout_ms)  # zero-length packet ends the transfer
+        except usb.core.USBError as exc:
+            raise map_usb_error(exc, self.name, "bulk OUT") from None
+
+    def read(self, size: int, timeout_ms: int) -> bytes:
+        try:
+            return bytes(self.ep_in.read(size, timeout_ms))
+        except usb.core.USBError as exc:
+            raise map_usb_error(exc, self.name, "bulk IN") from None
+
+    def read_event(self, size: int, timeout_ms: int) -> bytes:
+        if self.ep_int is None:
+            return b""
+        try:
+            return bytes(self.ep_int.read(size, timeout_ms))
+        except usb.core.USBTimeoutError:
+            return b""
+        except usb.core.USBError as exc:
+            raise map_usb_error(exc, self.name, "interrupt IN") from None
+
+    def _ctrl(self, req_type: int, req: int, data: Any, step: str) -> Any:
+        try:
+            return self.device.ctrl_transfer(req_type, req, 0, self.interface, data, 2000)
+        except usb.core.USBError as exc:
+            raise map_usb_error(exc, self.name, step) from None
+
+    def cancel(self, tid: int) -> None:
+        """Class request Cancel (0x64): data = CancellationCode 0x4001 (u16) + TransactionID (u32)."""
+        self._ctrl(0x21, REQ_CANCEL, struct.pack("<HI", CANCEL_EVENT_CODE, tid), "cancel request")
+
+    def device_status(self) -> int:
+        """Class request Get Device Status (0x67): returns the PTP response code it reports."""
+        raw = bytes(self._ctrl(0xA1, REQ_GET_DEVICE_STATUS, 20, "get device status"))
+        if len(raw) < 4:
+            raise ProtocolError(f"device status of {len(raw)} bytes", where=self.name)
+        return struct.unpack_from("<H", raw, 2)[0]
+
+    def device_reset(self) -> None:
+        """Class request Device Reset (0x66): the device closes the session and clears its pipes."""
+        self._ctrl(0x21, REQ_DEVICE_RESET, None, "device reset request")
+
+    def clear_halt(self) -> None:
+        """Clear the halt (stall) on both bulk endpoints."""
+        for ep in (self.ep_in, self.ep_out):
+            try:
+                self.device.clear_halt(ep.bEndpointAddress)
+            except usb.core.USBError as exc:
+                raise map_usb_error(exc, self.name, "clear halt") from None
+
+    def close(self) -> None:
+        try:
+            usb.util.release_interface(self.device, self.interface)
+            usb.util.dispose_resources(self.device)
+        except usb.core.USBError:
+            pass

@@ -1,0 +1,407 @@
+"""A simulated Canon EOS 5D Mark IV: one PTP operation handler shared by the USB and PTP/IP framings.
+
+It answers the operations dp5k's client and libgphoto2 use (standard PTP plus the EOS remote-capture
+set), keeps the EOS properties and their allowed lists, queues GetEvent records, and on a release
+renders one exposure through an injected :class:`BodyOptics` (the virtual studio, or a trivial scene in
+unit tests) at the current aperture, shutter, ISO and focus. Quirks of the real body are kept: the raw
+DeviceInfo reports VendorExtensionID 6, and after CloseSession every operation answers
+OperationNotSupported (libgphoto2 ``PTP_DONT_CLOSE_SESSION``).
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from ..ptp import eos_events as ev
+from ..ptp.codes import (
+    AV_CODES,
+    CAPTURE_DEST_CARD,
+    CAPTURE_DEST_PC,
+    ISO_CODES,
+    OFC_DNG,
+    EosEvent,
+    EosProp,
+    Op,
+    Resp,
+    av_code,
+    iso_code,
+    tv_code,
+    tv_seconds,
+    AV_FROM_CODE,
+    ISO_FROM_CODE,
+)
+from ..ptp.datasets import DeviceInfo, DevicePropDesc, ObjectInfo, StorageInfo, Writer
+
+log = logging.getLogger(__name__)
+
+STORAGE_ID = 0x00010001
+RAW_FORMAT = (6, 0, 4)  # ImageFormat entry: kind 6 = RAW, size 0 = L, compression 4 = lossless
+DATA_OUT_OPS = frozenset({Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.SET_DEVICE_PROP_VALUE})
+
+
+@dataclass(frozen=True)
+class ExposureSettings:
+    """What the body knows when its shutter opens."""
+
+    serial: str
+    f_number: float
+    shutter_s: float
+    iso: int
+    focus_point_px: tuple[float, float] | None
+    focus_distance_m: float | None
+    dual_pixel_raw: bool
+    sequence: int
+
+
+class BodyOptics(Protocol):
+    """What the body needs from the world: autofocus at a point and the file bytes of one exposure."""
+
+    def autofocus_m(self, serial: str, point_px: tuple[float, float]) -> float: ...
+    def expose(self, settings: ExposureSettings) -> bytes: ...
+
+
+@dataclass(frozen=True)
+class Reply:
+    """A handler's answer: response code, response params and (for data-in operations) the data."""
+
+    code: int
+    params: tuple[int, ...] = ()
+    data: bytes | None = None
+
+
+@dataclass
+class BodyFaults:
+    """Faults the body injects at the PTP level (USB-level faults live in the USB framing).
+
+    Attributes:
+        busy: op code -> how many times it answers DeviceBusy before it succeeds.
+        dual_pixel_raw: False simulates a body whose DPRAW menu setting is off.
+        card_full: RemoteRelease answers 7 / the release fails with StoreFull.
+    """
+
+    busy: dict[int, int] = field(default_factory=dict)
+    dual_pixel_raw: bool = True
+    card_full: bool = False
+
+
+@dataclass
+class _Object:
+    handle: int
+    name: str
+    data: bytes
+    on_card: bool
+
+
+class SimulatedEOS:
+    """The PTP core of one simulated body.
+
+    Args:
+        serial: the body serial (EOS property 0xD1AF, DeviceInfo and USB iSerialNumber).
+        optics: the world the body photographs.
+        vendor_extension_id: what DeviceInfo reports (6 like the real 5D Mark IV over USB).
+        lens_name: reported LensName; apertures offered are those of an EF 85mm f/1.8.
+    """
+
+    MODEL = "Canon EOS 5D Mark IV"
+
+    def __init__(
+        self,
+        serial: str,
+        optics: BodyOptics,
+        *,
+        vendor_extension_id: int = 6,
+        lens_name: str = "EF85mm f/1.8 USM",
+        faults: BodyFaults | None = None,
+    ) -> None:
+        self.serial = serial
+        self.optics = optics
+        self.vendor_extension_id = vendor_extension_id
+        self.faults = faults or BodyFaults()
+        self.session_open = False
+        self.broken = False  # after CloseSession, like the real body
+        self.remote_mode = 0
+        self.event_mode = 0
+        self.events: list[bytes] = []
+        self.objects: dict[int, _Object] = {}
+        self._next_handle = 0x9000_0001
+        self.sequence = 0
+        self.focus_point_px: tuple[float, float] | None = None
+        self.focus_distance_m: float | None = None
+        self.pressed = 0
+        self.op_log: list[int] = []
+        self.last_object_bytes: bytes = b""
+        apertures = [c for f, c in sorted(AV_CODES.items()) if 1.8 <= f <= 22.0]
+        self.avail: dict[int, list[int]] = {
+            EosProp.APERTURE: apertures,
+            EosProp.SHUTTER_SPEED: [c for c in range(0x10, 0xA1) if c % 8 in (0, 3, 5)],  # 30 s .. 1/8000, 1/3 stops
+            EosProp.ISO: sorted(ISO_CODES.values()),
+            EosProp.CAPTURE_DESTINATION: [CAPTURE_DEST_CARD, CAPTURE_DEST_PC],
+        }
+        self.props: dict[int, int | str] = {
+            EosProp.APERTURE: av_code(4.0),
+            EosProp.SHUTTER_SPEED: tv_code(1 / 60),
+            EosProp.ISO: iso_code(100),
+            EosProp.AUTO_EXPOSURE_MODE: 3,  # M
+            EosProp.DRIVE_MODE: 0,
+            EosProp.FOCUS_MODE: 0,  # one-shot AF
+            EosProp.CAPTURE_DESTINATION: CAPTURE_DEST_CARD,
+            EosProp.AVAILABLE_SHOTS: 0,
+            EosProp.EVF_OUTPUT_DEVICE: 0,
+            EosProp.SERIAL_NUMBER: serial,
+            EosProp.LENS_NAME: lens_name,
+        }
+        self.image_format: tuple[int, int, int] = (1, 0, 3)  # JPEG L fine until the client asks for RAW
+        self._dumped = False
+
+    # ------------------------------------------------------------------ helpers
+    def device_info(self) -> DeviceInfo:
+        ops = sorted(
+            {int(o) for o in Op if o not in (Op.INITIATE_CAPTURE, Op.SET_DEVICE_PROP_VALUE)}
+        )
+        return DeviceInfo(
+            standard_version=100, vendor_extension_id=self.vendor_extension_id, vendor_extension_version=100,
+            vendor_extension_desc="", functional_mode=0, operations=ops,
+            events=[0x4002, 0x4006, 0x400D, 0xC101],
+            properties=[0x5001] + sorted(int(p) for p in EosProp),
+            capture_formats=[OFC_DNG], image_formats=[OFC_DNG, 0x3801],
+            manufacturer="Canon Inc.", model=self.MODEL, device_version="1-1.2.0", serial_number=self.serial.rjust(32, "0"),
+        )
+
+    def _queue_prop(self, prop: int) -> None:
+        value = self.props[prop]
+        self.events.append(ev.pack_prop_value(prop, value))
+
+    def _queue_dump(self) -> None:
+        for prop, values in self.avail.items():
+            self.events.append(ev.pack_avail_list(prop, values))
+        for prop in self.props:
+            self._queue_prop(prop)
+        self.events.append(ev.pack_image_format_value(EosProp.IMAGE_FORMAT, *self.image_format))
+        self._dumped = True
+
+    def settings(self) -> ExposureSettings:
+        return ExposureSettings(
+            serial=self.serial,
+            f_number=AV_FROM_CODE[int(self.props[EosProp.APERTURE])],
+            shutter_s=tv_seconds(int(self.props[EosProp.SHUTTER_SPEED])),
+            iso=ISO_FROM_CODE[int(self.props[EosProp.ISO])],
+            focus_point_px=self.focus_point_px,
+            focus_distance_m=self.focus_distance_m,
+            dual_pixel_raw=self.faults.dual_pixel_raw and self.image_format == RAW_FORMAT,
+            sequence=self.sequence,
+        )
+
+    def _autofocus(self) -> None:
+        if self.focus_point_px is not None:
+            self.focus_distance_m = float(self.optics.autofocus_m(self.serial, self.focus_point_px))
+
+    def _expose(self) -> Reply:
+        if self.faults.card_full:
+            return Reply(Resp.STORE_FULL)
+        if self.focus_distance_m is None:
+            self._autofocus()
+        self.sequence += 1
+        data = self.optics.expose(self.settings())
+        handle = self._next_handle
+        self._next_handle += 1
+        ext = "DNG" if self.image_format[0] == 6 else "JPG"
+        name = f"IMG_{self.sequence:04d}.{ext}"
+        on_card = self.props[EosProp.CAPTURE_DESTINATION] != CAPTURE_DEST_PC
+        self.objects[handle] = _Object(handle, name, data, on_card)
+        self.last_object_bytes = data
+        self.events.append(ev.pack_camera_status(1))
+        if on_card:
+            self.events.append(ev.pack_object_added_ex(handle, STORAGE_ID, OFC_DNG, len(data), 0x9000_0000, name))
+        else:
+            self.events.append(ev.pack_request_object_transfer(handle, OFC_DNG, len(data), name))
+        self.events.append(ev.pack_camera_status(0))
+        return Reply(Resp.OK)
+
+    # ------------------------------------------------------------------ the handler
+    def handle(self, op: int, params: tuple[int, ...], data: bytes | None = None) -> Reply:
+        """Answer one operation (params already decoded; ``data`` is the host->device data phase)."""
+        self.op_log.append(op)
+        if self.broken:
+            return Reply(Resp.OPERATION_NOT_SUPPORTED)
+        if op == Op.GET_DEVICE_INFO:
+            return Reply(Resp.OK, data=self.device_info().pack())
+        if op == Op.OPEN_SESSION:
+            if self.session_open:
+                return Reply(Resp.SESSION_ALREADY_OPEN)
+            if not params or params[0] == 0:
+                return Reply(Resp.INVALID_PARAMETER)
+            self.session_open = True
+            return Reply(Resp.OK)
+        if not self.session_open:
+            return Reply(Resp.SESSION_NOT_OPEN)
+        remaining = self.faults.busy.get(op, 0)
+        if remaining > 0:
+            self.faults.busy[op] = remaining - 1
+            return Reply(Resp.DEVICE_BUSY)
+        fn = getattr(self, f"_op_{op:04x}", None)
+        if fn is None:
+            return Reply(Resp.OPERATION_NOT_SUPPORTED)
+        p = tuple(params) + (0,) * (5 - len(params))
+        return fn(p, data)
+
+    # standard operations
+    def _op_1003(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        self.session_open = False
+        self.broken = True  # "2016 EOS cameras ... report 0x2005 on all following opcodes"
+        return Reply(Resp.OK)
+
+    def _op_1004(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        return Reply(Resp.OK, data=Writer().array(4, [STORAGE_ID]).bytes())
+
+    _op_9101 = _op_1004
+
+    def _op_1005(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if p[0] != STORAGE_ID:
+            return Reply(Resp.INVALID_STORAGE_ID)
+        info = StorageInfo(3, 2, 0, 64 << 30, 60 << 30, 900, "SD", "EOS_DIGITAL")
+        return Reply(Resp.OK, data=info.pack())
+
+    _op_9102 = _op_1005
+
+    def _op_1007(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if p[0] not in (STORAGE_ID, 0xFFFFFFFF):
+            return Reply(Resp.INVALID_STORAGE_ID)
+        handles = [h for h, o in self.objects.items() if o.on_card]
+        return Reply(Resp.OK, data=Writer().array(4, handles).bytes())
+
+    def _object(self, handle: int) -> _Object | None:
+        return self.objects.get(handle)
+
+    def _op_1008(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        obj = self._object(p[0])
+        if obj is None:
+            return Reply(Resp.INVALID_OBJECT_HANDLE)
+        info = ObjectInfo(storage_id=STORAGE_ID, object_format=OFC_DNG, compressed_size=len(obj.data),
+                          parent=0x9000_0000, filename=obj.name, capture_date="20261121T200000")
+        return Reply(Resp.OK, data=info.pack())
+
+    def _op_1009(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        obj = self._object(p[0])
+        return Reply(Resp.INVALID_OBJECT_HANDLE) if obj is None else Reply(Resp.OK, data=obj.data)
+
+    def _op_101b(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        obj = self._object(p[0])
+        if obj is None:
+            return Reply(Resp.INVALID_OBJECT_HANDLE)
+        chunk = obj.data[p[1] : p[1] + p[2]]
+        return Reply(Resp.OK, (len(chunk),), chunk)
+
+    def _op_100b(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if self.objects.pop(p[0], None) is None:
+            return Reply(Resp.INVALID_OBJECT_HANDLE)
+        self.events.append(struct.pack("<III", 12, EosEvent.OBJECT_REMOVED, p[0]))
+        return Reply(Resp.OK)
+
+    def _op_9117(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        obj = self.objects.get(p[0])
+        if obj is None or obj.on_card:
+            return Reply(Resp.INVALID_OBJECT_HANDLE)
+        del self.objects[p[0]]  # released from the body's SDRAM
+        return Reply(Resp.OK)
+
+    def _op_1014(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if p[0] == 0x5001:  # BatteryLevel, u8 range 0..100
+            return Reply(Resp.OK, data=DevicePropDesc(0x5001, 2, False, 100, 80, 1, [0, 100, 1]).pack())
+        return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
+
+    def _op_1015(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if p[0] == 0x5001:
+            return Reply(Resp.OK, data=bytes([80]))
+        return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
+
+    # EOS operations
+    def _op_9110(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if data is None or len(data) < 12:
+            return Reply(Resp.INVALID_DEVICE_PROP_FORMAT)
+        size, prop = struct.unpack_from("<II", data, 0)
+        if size != len(data):
+            return Reply(Resp.INVALID_DEVICE_PROP_FORMAT)
+        if prop in (EosProp.IMAGE_FORMAT, EosProp.IMAGE_FORMAT_CF, EosProp.IMAGE_FORMAT_SD):
+            if size != 28 or struct.unpack_from("<I", data, 8)[0] != 1:
+                return Reply(Resp.INVALID_DEVICE_PROP_VALUE)
+            self.image_format = struct.unpack_from("<III", data, 16)
+            self.events.append(ev.pack_image_format_value(prop, *self.image_format))
+            return Reply(Resp.OK)
+        if prop not in self.props or isinstance(self.props[prop], str) or prop == EosProp.AVAILABLE_SHOTS:
+            return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
+        value = struct.unpack_from("<I", data, 8)[0]
+        if prop in self.avail and value not in self.avail[prop]:
+            return Reply(Resp.INVALID_DEVICE_PROP_VALUE)
+        self.props[prop] = value
+        self._queue_prop(prop)
+        if prop == EosProp.CAPTURE_DESTINATION and value == CAPTURE_DEST_CARD:
+            self.props[EosProp.AVAILABLE_SHOTS] = 900
+            self._queue_prop(EosProp.AVAILABLE_SHOTS)
+        return Reply(Resp.OK)
+
+    def _op_9114(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        self.remote_mode = p[0]
+        return Reply(Resp.OK)
+
+    def _op_9115(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        self.event_mode = p[0]
+        if p[0] and not self._dumped:
+            self._queue_dump()
+        return Reply(Resp.OK)
+
+    def _op_9116(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if not self._dumped:
+            self._queue_dump()
+        out = b"".join(self.events) + ev.TERMINATOR
+        self.events.clear()
+        return Reply(Resp.OK, data=out)
+
+    def _op_911a(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if self.props[EosProp.CAPTURE_DESTINATION] == CAPTURE_DEST_PC:
+            self.props[EosProp.AVAILABLE_SHOTS] = 9999
+            self._queue_prop(EosProp.AVAILABLE_SHOTS)
+        return Reply(Resp.OK)
+
+    def _ok(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        return Reply(Resp.OK)
+
+    _op_911b = _op_911c = _op_911d = _op_9160 = _ok
+
+    def _op_9127(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        if p[0] in self.props:
+            self._queue_prop(p[0])
+        return Reply(Resp.OK)
+
+    def _op_9159(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """ZoomPosition(x, y): moves the live-view AF frame; here in raw-image pixels."""
+        self.focus_point_px = (float(p[0]), float(p[1]))
+        return Reply(Resp.OK)
+
+    def _op_9154(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """DoAf: focus at the AF frame (only in live view, like the real body)."""
+        if not int(self.props[EosProp.EVF_OUTPUT_DEVICE]) & 2:
+            return Reply(Resp.GENERAL_ERROR)
+        self._autofocus()
+        return Reply(Resp.OK)
+
+    def _op_9128(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        button, no_af = p[0], p[1]
+        if button not in (1, 2, 3):
+            return Reply(Resp.INVALID_PARAMETER)
+        if not no_af and self.props[EosProp.FOCUS_MODE] != 3:
+            self._autofocus()
+        self.pressed = button
+        if button in (2, 3):
+            return self._expose()
+        return Reply(Resp.OK)
+
+    def _op_9129(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        self.pressed = 0
+        return Reply(Resp.OK)
+
+    def _op_910f(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        res = self._expose()
+        return Reply(Resp.OK, (7 if res.code == Resp.STORE_FULL else 0,))

@@ -1,0 +1,197 @@
+"""USB framing of the simulated body: PTP bulk containers in and out, class requests, USB faults.
+
+:class:`SimUsbPtpDevice` turns bulk-OUT bytes into operations for a :class:`SimulatedEOS` and queues the
+data and response containers on bulk IN, one USB transfer per container (a read never spans two). It also
+answers the Still Image class requests and string descriptors, and injects USB faults on request:
+disconnect after N bytes of bulk IN, stalls, DeviceBusy storms (via the body), short, garbled and
+malformed containers.
+"""
+
+from __future__ import annotations
+
+import errno
+import struct
+from collections import deque
+from dataclasses import dataclass
+
+import usb.core
+
+from ..ptp.codes import CANON_VID, EOS_5D_MARK_IV_PID, ContainerType, Resp
+from ..ptp.container import HEADER, HEADER_LEN
+from .eos_body import DATA_OUT_OPS, SimulatedEOS
+
+EP_IN, EP_OUT, EP_INT = 0x81, 0x02, 0x83
+
+
+@dataclass
+class UsbFaults:
+    """USB-level faults (each fires once, then clears itself unless noted).
+
+    Attributes:
+        disconnect_after_in_bytes: after this many more bulk-IN bytes the device vanishes (ENODEV, sticky).
+        stall_in: stall the next N bulk-IN reads (EPIPE) until the host clears the halt.
+        garble_next_in: flip the container type of the next bulk-IN container to 7.
+        short_next_in: cut the next bulk-IN container to 5 bytes (a short packet, then nothing).
+        bad_length_next_in: claim a 3 GiB length in the next data container's header.
+        drop_next_response: the next response container never comes (the host times out).
+    """
+
+    disconnect_after_in_bytes: int | None = None
+    stall_in: int = 0
+    garble_next_in: bool = False
+    short_next_in: bool = False
+    bad_length_next_in: bool = False
+    drop_next_response: bool = False
+
+
+class SimUsbPtpDevice:
+    """One simulated USB PTP device (VID/PID of a 5D Mark IV by default) around a PTP core."""
+
+    def __init__(self, core: SimulatedEOS, *, vid: int = CANON_VID, pid: int = EOS_5D_MARK_IV_PID,
+                 bus: int = 1, address: int = 10, max_packet: int = 512) -> None:
+        self.core = core
+        self.vid, self.pid, self.bus, self.address = vid, pid, bus, address
+        self.max_packet = max_packet
+        self.faults = UsbFaults()
+        self.strings = {1: "Canon Inc.", 2: core.MODEL, 3: core.serial}
+        self._out = bytearray()
+        self._pending_cmd: tuple[int, int, tuple[int, ...]] | None = None
+        self._in: deque[bytearray] = deque()
+        self.gone = False
+        self.halted = False
+        self.in_bytes = 0
+
+    # ------------------------------------------------------------------ faults
+    def _usb_error(self, code: int, text: str) -> usb.core.USBError:
+        return usb.core.USBError(text, None, code)
+
+    def _check_present(self) -> None:
+        if self.gone:
+            raise self._usb_error(errno.ENODEV, "No such device (it may have been disconnected)")
+
+    # ------------------------------------------------------------------ bulk
+    def bulk_out(self, data: bytes) -> int:
+        self._check_present()
+        if self.halted:
+            raise self._usb_error(errno.EPIPE, "Pipe error")
+        if not data:
+            return 0  # zero-length packet
+        self._out += data
+        while len(self._out) >= HEADER_LEN:
+            length, ctype, code, tid = HEADER.unpack_from(self._out)
+            if length < HEADER_LEN or length > (64 << 20):
+                self._out.clear()
+                self._queue_response(Resp.GENERAL_ERROR, tid, ())
+                return len(data)
+            if len(self._out) < length:
+                break
+            body = bytes(self._out[HEADER_LEN:length])
+            del self._out[:length]
+            self._container(ctype, code, tid, body)
+        return len(data)
+
+    def _container(self, ctype: int, code: int, tid: int, body: bytes) -> None:
+        if ctype == ContainerType.COMMAND:
+            if len(body) % 4 or len(body) > 20:
+                self._queue_response(Resp.GENERAL_ERROR, tid, ())
+                return
+            params = struct.unpack(f"<{len(body) // 4}I", body)
+            if code in DATA_OUT_OPS:
+                self._pending_cmd = (code, tid, params)
+                return
+            self._run(code, tid, params, None)
+        elif ctype == ContainerType.DATA and self._pending_cmd is not None:
+            op, ptid, params = self._pending_cmd
+            self._pending_cmd = None
+            if ptid != tid or op != code:
+                self._queue_response(Resp.INVALID_TRANSACTION_ID, tid, ())
+                return
+            self._run(op, tid, params, body)
+        else:
+            self._queue_response(Resp.GENERAL_ERROR, tid, ())
+
+    def _run(self, op: int, tid: int, params: tuple[int, ...], data: bytes | None) -> None:
+        reply = self.core.handle(op, params, data)
+        if reply.data is not None and reply.code == Resp.OK:
+            self._in.append(bytearray(HEADER.pack(HEADER_LEN + len(reply.data), ContainerType.DATA, op, tid) + reply.data))
+        if self.faults.drop_next_response:
+            self.faults.drop_next_response = False
+            return
+        self._queue_response(reply.code, tid, reply.params)
+
+    def _queue_response(self, code: int, tid: int, params: tuple[int, ...]) -> None:
+        body = struct.pack(f"<{len(params)}I", *params)
+        self._in.append(bytearray(HEADER.pack(HEADER_LEN + len(body), ContainerType.RESPONSE, code, tid) + body))
+
+    def bulk_in(self, size: int) -> bytes:
+        self._check_present()
+        if self.faults.stall_in > 0 or self.halted:
+            if self.faults.stall_in > 0:
+                self.faults.stall_in -= 1
+            self.halted = True
+            raise self._usb_error(errno.EPIPE, "Pipe error")
+        if not self._in:
+            raise usb.core.USBTimeoutError("Operation timed out", None, errno.ETIMEDOUT)
+        cur = self._in[0]
+        if self.faults.garble_next_in:
+            self.faults.garble_next_in = False
+            struct.pack_into("<H", cur, 4, 7)
+        if self.faults.bad_length_next_in and cur[4] == ContainerType.DATA:
+            self.faults.bad_length_next_in = False
+            struct.pack_into("<I", cur, 0, 3 << 30)
+        if self.faults.short_next_in:
+            self.faults.short_next_in = False
+            self._in.popleft()
+            return bytes(cur[:5])
+        n = min(size, len(cur))
+        if self.faults.disconnect_after_in_bytes is not None:
+            left = self.faults.disconnect_after_in_bytes - self.in_bytes
+            if left <= 0:
+                self.gone = True
+                self._check_present()
+            n = min(n, left)
+        out = bytes(cur[:n])
+        del cur[:n]
+        if not cur:
+            self._in.popleft()
+        self.in_bytes += n
+        return out
+
+    def interrupt_in(self, size: int) -> bytes:
+        self._check_present()
+        raise usb.core.USBTimeoutError("Operation timed out", None, errno.ETIMEDOUT)
+
+    # ------------------------------------------------------------------ control
+    def control(self, req_type: int, req: int, value: int, index: int, data: bytes | int) -> bytes | int:
+        """Still Image class requests and GET_DESCRIPTOR(string); returns IN bytes or OUT length."""
+        self._check_present()
+        if req_type == 0x80 and req == 0x06 and value >> 8 == 3:  # string descriptor
+            idx = value & 0xFF
+            if idx == 0:
+                return bytes([4, 3, 0x09, 0x04])
+            text = self.strings.get(idx, "")
+            raw = text.encode("utf-16-le")
+            return (bytes([2 + len(raw), 3]) + raw)[: int(data)]
+        if req_type == 0x21 and req == 0x64:  # Cancel
+            self._in.clear()
+            self._out.clear()
+            self._pending_cmd = None
+            return len(data) if isinstance(data, (bytes, bytearray)) else 0
+        if req_type == 0x21 and req == 0x66:  # Device Reset
+            self._in.clear()
+            self._out.clear()
+            self._pending_cmd = None
+            self.core.session_open = False
+            return 0
+        if req_type == 0xA1 and req == 0x67:  # Get Device Status
+            code = Resp.TRANSACTION_CANCELLED if self.halted else Resp.OK
+            return struct.pack("<HH", 4, code)
+        raise self._usb_error(errno.EPIPE, "Pipe error")
+
+    def clear_halt(self, ep: int) -> None:
+        self._check_present()
+        self.halted = False
+        self._in.clear()
+
+    def unplug(self) -> None:
+        self.gone = True
