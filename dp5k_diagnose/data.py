@@ -1,0 +1,84 @@
+"""Measured data for diagnosis, read only through dataset format v1: batches of pairs or crops with field maps."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dp5k_common.dataset import DatasetReader, Pair
+from neural_dp.batch import DPBatch
+from neural_dp.simulators.base import field_coords
+
+
+@dataclass
+class Sample:
+    """A batch of pairs or crops and their field coordinates.
+
+    Attributes:
+        batch: the DPBatch (measured ``left``/``right`` set).
+        field: (B, 2, H, W) field coordinates (x, y) in [-1, 1] of each full image.
+    """
+
+    batch: DPBatch
+    field: Tensor
+
+
+def load_pairs(reader: DatasetReader, ids: Sequence[str]) -> list[Pair]:
+    return [reader.load(pid) for pid in ids]
+
+
+def full_samples(pairs: Sequence[Pair], device: str = "cpu", per_batch: int = 4) -> list[Sample]:
+    """Whole pairs, grouped by image size, ``per_batch`` pairs per batch."""
+    groups: dict[tuple[int, int], list[Pair]] = defaultdict(list)
+    for p in pairs:
+        groups[p.params.image_size].append(p)
+    out = []
+    for (W, H), ps in groups.items():
+        for i in range(0, len(ps), per_batch):
+            chunk = ps[i : i + per_batch]
+            b = DPBatch.from_pairs(chunk, device)
+            out.append(Sample(b, field_coords(len(chunk), H, W, device)))
+    return out
+
+
+def crop_samples(
+    pairs: Sequence[Pair], crop: int, crops_per_pair: int, rng: np.random.Generator, device: str = "cpu", per_batch: int = 8
+) -> list[Sample]:
+    """Random square crops (side ``crop`` px or the image, whichever is smaller) with full-image field maps.
+
+    Small images (both sides <= ``crop``) are used whole, once.
+    """
+    items: list[tuple[DPBatch, Tensor]] = []
+    for p in pairs:
+        W, H = p.params.image_size
+        ch, cw = min(crop, H), min(crop, W)
+        b = DPBatch.from_pairs([p], device)
+        n = 1 if (ch == H and cw == W) else crops_per_pair
+        for _ in range(n):
+            y0 = int(rng.integers(0, H - ch + 1))
+            x0 = int(rng.integers(0, W - cw + 1))
+            items.append((b.crop(y0, x0, ch, cw), field_coords(1, ch, cw, device, (x0, y0), (W, H))))
+    groups: dict[tuple[int, int], list[tuple[DPBatch, Tensor]]] = defaultdict(list)
+    for b, f in items:
+        groups[tuple(b.sharp.shape[-2:])].append((b, f))
+    out = []
+    for _, its in groups.items():
+        for i in range(0, len(its), per_batch):
+            chunk = its[i : i + per_batch]
+            out.append(Sample(cat_batches([c[0] for c in chunk]), torch.cat([c[1] for c in chunk])))
+    return out
+
+
+def cat_batches(batches: Sequence[DPBatch]) -> DPBatch:
+    """Concatenate same-size batches along the batch axis."""
+    kw = {}
+    for name in ("sharp", "coc_px", "depth_mm", "valid", "f_number", "focus_distance_mm", "focal_length_mm", "pixel_pitch_mm", "focus_point_px", "left", "right"):
+        vals = [getattr(b, name) for b in batches]
+        kw[name] = None if vals[0] is None else torch.cat(vals)
+    kw["pair_ids"] = tuple(pid for b in batches for pid in b.pair_ids)
+    return DPBatch(**kw)

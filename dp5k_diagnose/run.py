@@ -1,0 +1,118 @@
+"""``dp5k diagnose``: fit, show what the model gets wrong, name the cause, extend the model, measure the gain."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dp5k_common.dataset import DatasetReader
+from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
+from dp5k_common.errors import BadInputError
+from neural_dp.simulators.base import BaseModel
+
+from .data import Sample, crop_samples, full_samples, load_pairs
+from .detect import DetectConfig, Finding, fit_base, name_cause, test_effects
+from .gain import gain_report, pair_metrics
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DiagnoseConfig:
+    """Settings of one diagnosis.
+
+    Attributes:
+        fit_pairs: at most this many training pairs are used to fit (the rest of train helps detection).
+        crop_px: fit and detection use square crops of this side (whole images when smaller).
+        crops_per_pair: crops per pair when the images are larger than ``crop_px``.
+        det_pairs: at most this many pairs in the detection set.
+        n_boot: bootstrap resamples for the gain's CI.
+        seed: seeds crop positions and the bootstrap.
+        detect: the detectors' statistical settings.
+        effects: the effects to test (default: the whole vocabulary).
+    """
+
+    fit_pairs: int = 8
+    crop_px: int = 128
+    crops_per_pair: int = 2
+    det_pairs: int = 8
+    n_boot: int = 2000
+    seed: int = 0
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    effects: tuple[str, ...] = EFFECT_NAMES
+
+
+@dataclass
+class Diagnosis:
+    model: str
+    dataset: str
+    base: BaseModel
+    findings: list[Finding]
+    cause: str
+    extended: BaseModel
+    gain: dict[str, Any]
+    timings_s: dict[str, float]
+    splits_used: dict[str, list[str]]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "dataset": self.dataset,
+            "cause": self.cause,
+            "findings": [f.to_json() for f in self.findings],
+            "gain": self.gain,
+            "base_params": dict(self.base.params),
+            "extended_model": self.extended.describe(),
+            "splits_used": self.splits_used,
+            "timings_s": self.timings_s,
+        }
+
+
+def choose_splits(reader: DatasetReader, cfg: DiagnoseConfig) -> dict[str, list[str]]:
+    """Fit on train, detect on val (else the remaining train pairs, else the fit pairs), gain on test."""
+    train = reader.ids("train")
+    val = reader.ids("val") if "val" in reader.splits else []
+    test = reader.ids("test") if "test" in reader.splits else []
+    if not train:
+        raise BadInputError("the dataset's train split is empty; diagnose fits on train", where=reader.root)
+    rng = np.random.default_rng(cfg.seed)
+    order = [train[i] for i in rng.permutation(len(train))]
+    fit_ids = sorted(order[: cfg.fit_pairs])
+    rest = sorted(order[cfg.fit_pairs :])
+    det_ids = (val + rest)[: cfg.det_pairs] if (val or rest) else fit_ids
+    gain_split = "test" if test else ("val" if val else "train")
+    gain_ids = test or val or train
+    return {"fit": fit_ids, "detect": det_ids, gain_split: gain_ids}
+
+
+def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Diagnosis:
+    """Diagnose the physical base model on a format-v1 dataset."""
+    cfg = cfg or DiagnoseConfig()
+    t0 = time.perf_counter()
+    reader = DatasetReader(dataset)
+    splits = choose_splits(reader, cfg)
+    rng = np.random.default_rng(cfg.seed)
+    fit = crop_samples(load_pairs(reader, splits["fit"]), cfg.crop_px, cfg.crops_per_pair, rng)
+    det = crop_samples(load_pairs(reader, splits["detect"]), cfg.crop_px, cfg.crops_per_pair, rng)
+    t_load = time.perf_counter()
+    base = fit_base(fit, cfg.detect.lm_iters)
+    log.info("base model fitted: %s", base.params)
+    t_fit = time.perf_counter()
+    findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
+    cause = name_cause(findings)
+    extended = findings[0].model if cause != NO_EFFECT and findings[0].model is not None else base
+    t_det = time.perf_counter()
+    gain_split = next(k for k in splits if k not in ("fit", "detect"))
+    held = full_samples(load_pairs(reader, splits[gain_split]))
+    before = pair_metrics(lambda s: base.render(s.batch, s.field), held)
+    after = before if extended is base else pair_metrics(lambda s: extended.render(s.batch, s.field), held)
+    gain = gain_report(before, after, gain_split, cfg.n_boot, cfg.seed)
+    t_end = time.perf_counter()
+    timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
+    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits)

@@ -1,0 +1,467 @@
+"""The physical base model: the ideal thin-lens DP model, occlusion-aware, with two fitted parameters.
+
+Each DP view integrates exactly one half of the aperture (a hard split through the disc centre); the
+right PSF is the hflip of the left (Eq. 2). For ``coc > 0`` (behind focus) the left view's light lands on
+the left half of the disc (docs/conventions.md), mirrored for ``coc < 0``. The only free parameters are
+the softness of the disc's rim (``rim_softness_px``) and an overall ``gain``::
+
+    I_l = gain * H_l(|c|, s) * I_s / 2,   I_r = gain * hflip(H_l) * I_s / 2,   sum H_l = 1
+
+Rendering from RGBD is layered and occlusion-aware: the signed CoC range is cut into nodes (soft, linear
+assignment of each pixel to its two neighbouring nodes); each node's premultiplied colour and alpha are
+blurred with that node's half-disc PSF (FFT), composited front to back (near = most negative CoC first,
+since CoC grows monotonically with depth), and normalised by the accumulated coverage (no dark seams at
+depth edges or image borders).
+
+Effects the base model lacks (L/R gain imbalance, field dependence, colour dependence, ...) are added as
+:class:`Component` objects: each may change the per-channel CoC map, the per-node PSF shape (per colour
+channel and field radius) or the rendered views, and carries its own parameters fitted on training data.
+``dp5k_diagnose.components`` holds the effect vocabulary's components.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import ClassVar
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..batch import DPBatch
+from .interface import DPSimulator
+
+__all__ = ["PSFShape", "Component", "RenderConfig", "BaseModel", "half_disc_kernels", "field_coords", "fit_parameters"]
+
+
+@dataclass
+class PSFShape:
+    """Per-node shape of the LEFT-view PSF (all tensors broadcast to (K,)).
+
+    Attributes:
+        coc_px: (K,) signed CoC diameter of each node, px (sign picks the half: left half for coc > 0).
+        scale: multiplies the disc diameter (1 = thin-lens).
+        softness_px: width of the rim's linear ramp, px (0 = hard edge, antialiased on a 4x grid).
+        profile: radial weight ``1 + profile * (2 (rho/R)^2 - 1)`` (0 = uniform disc, > 0 brighter rim,
+            < 0 brighter centre); mean-preserving over the disc.
+        split: weight of the half-aperture split: the left PSF is ``disc * ((1 - split)/2 + split * half)``,
+            so the L/R centroid separation is ``split`` times the ideal 4c/(3 pi) (1 = ideal hard split).
+    """
+
+    coc_px: Tensor
+    scale: Tensor
+    softness_px: Tensor
+    profile: Tensor
+    split: Tensor
+
+
+@dataclass
+class RenderConfig:
+    """Discretisation of the layered renderer.
+
+    Attributes:
+        node_step_px: spacing of CoC nodes, px (soft assignment between neighbours).
+        max_nodes: cap on the number of nodes (the step grows to respect it).
+        supersample: sub-pixel grid factor used to build kernels.
+        chunk: pairs rendered at once (memory bound).
+    """
+
+    node_step_px: float = 0.5
+    max_nodes: int = 40
+    supersample: int = 4
+    chunk: int = 4
+
+
+class Component(torch.nn.Module):
+    """One physical effect added to the base model, with parameters fitted on training data.
+
+    Override any of the hooks. ``params`` holds the fitted parameters by name (floats);
+    ``fit_names`` lists those the generic fitter adjusts, ``bounds`` their ranges, ``steps`` the finite
+    difference step used for their Jacobian.
+    """
+
+    name: ClassVar[str] = "component"
+    channel_dependent: ClassVar[bool] = False
+    field_dependent: ClassVar[bool] = False
+    changes_psf: ClassVar[bool] = False
+    post_only: ClassVar[bool] = False
+    """True when the component only has a :meth:`post` hook (its fit can reuse one layered render)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.params: dict[str, float] = {}
+        self.fit_names: list[str] = []
+        self.bounds: dict[str, tuple[float, float]] = {}
+        self.steps: dict[str, float] = {}
+
+    def coc(self, coc_px: Tensor, batch: DPBatch) -> Tensor:
+        """(B, 1 or 3, H, W) signed CoC per colour channel, px. Default: unchanged."""
+        return coc_px
+
+    def sharp(self, sharp: Tensor, batch: DPBatch) -> Tensor:
+        """(B, 3, H, W) the sharp input as the renderer should see it. Default: unchanged."""
+        return sharp
+
+    def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
+        """The PSF shape for colour ``channel`` (0..2, or -1 for all) at squared field radius ``field_r2``."""
+        return shape
+
+    def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
+        """Change the rendered views (B, 3, H, W); ``field`` is (B, 2, H, W) in [-1, 1]."""
+        return left, right
+
+    def initial_guess(self, model: "BaseModel", batch: DPBatch, field: Tensor) -> None:
+        """Set a starting point for the fitter from data (optional)."""
+
+    def describe(self) -> dict[str, float]:
+        """Parameters to report (default: ``params``)."""
+        return dict(self.params)
+
+
+def field_coords(batch_size: int, H: int, W: int, device: torch.device | str = "cpu", origin: tuple[int, int] = (0, 0), full_size: tuple[int, int] | None = None) -> Tensor:
+    """(B, 2, H, W) field coordinates (x, y) in [-1, 1] of the full image (optical centre = image centre).
+
+    Args:
+        origin: (x0, y0) of this crop inside the full image, px.
+        full_size: (W, H) of the full image (default: the crop itself).
+    """
+    Wf, Hf = full_size if full_size is not None else (W, H)
+    x0, y0 = origin
+    xs = (torch.arange(W, device=device, dtype=torch.float32) + x0 - (Wf - 1) / 2) / ((Wf - 1) / 2)
+    ys = (torch.arange(H, device=device, dtype=torch.float32) + y0 - (Hf - 1) / 2) / ((Hf - 1) / 2)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([gx, gy])[None].expand(batch_size, 2, H, W).contiguous()
+
+
+def field_r2(field: Tensor) -> Tensor:
+    """(B, 1, H, W) squared field radius normalised so that the image corner is 1."""
+    return (field[:, :1] ** 2 + field[:, 1:2] ** 2) / 2.0
+
+
+def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
+    r"""Left-view PSFs of K nodes, each normalised to sum 1.
+
+    For node k with radius :math:`R = s |c| / 2` (px), on a ``supersample``-times finer grid:
+
+    .. math::
+        D(\rho) = \mathrm{clip}((R - \rho)/w + 1/2, 0, 1), \quad w = \max(\text{softness}, 1/ss)
+        P(\rho) = 1 + \beta (2 \rho^2 / R^2 - 1)
+        S(x) = (1 - k)/2 + k [x \cdot \mathrm{sign}(c) < 0]
+        H_l = \mathrm{pool}(D P S) / \sum D P S
+
+    Returns:
+        (K, n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
+    """
+    coc = shape.coc_px
+    K = coc.shape[0]
+    dev = coc.device
+    scale = shape.scale.expand(K) if shape.scale.ndim else shape.scale.expand(K)
+    soft = shape.softness_px.reshape(-1).expand(K) if shape.softness_px.numel() == 1 else shape.softness_px
+    prof = shape.profile.reshape(-1).expand(K) if shape.profile.numel() == 1 else shape.profile
+    split = shape.split.reshape(-1).expand(K) if shape.split.numel() == 1 else shape.split
+    scale = shape.scale.reshape(-1).expand(K) if shape.scale.numel() == 1 else shape.scale
+    R = (coc.abs() * scale / 2).clamp(min=0.3)  # (K,) px
+    width = soft.clamp(min=1.0 / supersample)
+    half = int(math.ceil(float((R + width).max()) + 1))
+    n = 2 * half + 1
+    ss = supersample
+    fine = (torch.arange(n * ss, device=dev, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
+    fy, fx = torch.meshgrid(fine, fine, indexing="ij")
+    rho = torch.sqrt(fx**2 + fy**2)[None]  # (1, N, N)
+    Rk = R[:, None, None]
+    disc = ((Rk - rho) / width[:, None, None] + 0.5).clamp(0.0, 1.0)
+    prof_w = (1.0 + prof[:, None, None] * (2.0 * (rho / Rk) ** 2 - 1.0)).clamp(min=0.0)
+    sign = torch.where(coc >= 0, 1.0, -1.0)[:, None, None]
+    left_half = (fx[None] * sign < 0).float()
+    sk = split[:, None, None]
+    w = disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half)
+    w = w.reshape(K, n, ss, n, ss).sum(dim=(2, 4))
+    return w / w.sum(dim=(1, 2), keepdim=True).clamp(min=1e-12)
+
+
+def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
+    """(K,) CoC node positions spanning the valid CoC range (at least 2 nodes)."""
+    v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
+    if v.numel() == 0:
+        v = coc.reshape(-1)
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo < 1e-6:
+        return torch.tensor([lo - 0.5, lo + 0.5], device=coc.device)
+    k = int(math.ceil((hi - lo) / cfg.node_step_px)) + 1
+    k = max(2, min(k, cfg.max_nodes))
+    return torch.linspace(lo, hi, k, device=coc.device)
+
+
+def _embed_kernel_fft(kernels: Tensor, Hp: int, Wp: int) -> Tensor:
+    """rfft2 of (..., n, n) kernels placed with their centre at (0, 0) of an (Hp, Wp) grid."""
+    n = kernels.shape[-1]
+    h = n // 2
+    big = kernels.new_zeros(kernels.shape[:-2] + (Hp, Wp))
+    big[..., :n, :n] = kernels
+    big = torch.roll(big, shifts=(-h, -h), dims=(-2, -1))
+    return torch.fft.rfft2(big)
+
+
+def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: RenderConfig) -> tuple[Tensor, Tensor]:
+    """Occlusion-aware layered DP rendering (before gain).
+
+    Args:
+        sharp: (B, 3, H, W) linear sharp image.
+        coc: (B, Cc, H, W), Cc in {1, 3}: signed CoC per pixel (per colour channel), px.
+        valid: (B, 1, H, W) bool; only used to choose the node range.
+        kernel_fn: ``nodes (K,) -> (K, Ck, n, n)`` left-view kernels, Ck in {1, 3}.
+        cfg: discretisation.
+
+    Returns:
+        left, right: (B, 3, H, W), each ``H * sharp`` (PSFs sum to 1; no factor 1/2 yet).
+    """
+    B, _, H, W = sharp.shape
+    nodes = _nodes(coc, valid, cfg)
+    K = nodes.shape[0]
+    step = float(nodes[1] - nodes[0])
+    kl = kernel_fn(nodes)  # (K, Ck, n, n)
+    Ck, n = kl.shape[1], kl.shape[-1]
+    pad = n // 2 + 1
+    Hp, Wp = H + 2 * pad, W + 2 * pad
+    Hp += Hp % 2
+    Wp += Wp % 2
+    fl = _embed_kernel_fft(kl, Hp, Wp)  # (K, Ck, Hp, Wf)
+    fr = _embed_kernel_fft(kl.flip(-1), Hp, Wp)
+    per_channel = Ck == 3 or coc.shape[1] == 3
+    t = (coc - nodes[0]) / step  # (B, Cc, H, W) fractional node index
+    outs = []
+    for b0 in range(0, B, cfg.chunk):
+        s = sharp[b0 : b0 + cfg.chunk]
+        tt = t[b0 : b0 + cfg.chunk]
+        nb = s.shape[0]
+        acc = {v: torch.zeros_like(s) for v in ("l", "r")}
+        cov = {v: torch.zeros(nb, 3 if per_channel else 1, H, W, device=s.device) for v in ("l", "r")}
+        trans = {v: torch.ones(nb, 3 if per_channel else 1, H, W, device=s.device) for v in ("l", "r")}
+        for k in range(K):
+            m = (1.0 - (tt - k).abs()).clamp(min=0.0)  # (nb, Cc, H, W) soft membership
+            if float(m.max()) <= 0:
+                continue
+            if per_channel:
+                m3 = m.expand(nb, 3, H, W)
+                sig = torch.cat([s * m3, m3], dim=1)  # (nb, 6, H, W)
+            else:
+                sig = torch.cat([s * m, m], dim=1)  # (nb, 4, H, W)
+            sig = F.pad(sig, (pad, Wp - W - pad, pad, Hp - H - pad))
+            fs = torch.fft.rfft2(sig)
+            for v, fk in (("l", fl[k]), ("r", fr[k])):
+                if per_channel:
+                    kk = fk if Ck == 3 else fk.expand(3, *fk.shape[1:])
+                    prod = fs * torch.cat([kk, kk], dim=0)[None]
+                else:
+                    prod = fs * fk[None]
+                blurred = torch.fft.irfft2(prod, s=(Hp, Wp))[..., pad : pad + H, pad : pad + W]
+                nc = 3 if per_channel else 1
+                col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
+                acc[v] = acc[v] + trans[v] * col
+                cov[v] = cov[v] + trans[v] * alpha
+                trans[v] = trans[v] * (1.0 - alpha)
+        outs.append(tuple(acc[v] / cov[v].clamp(min=1e-6) for v in ("l", "r")))
+    return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs])
+
+
+class BaseModel(DPSimulator):
+    """The ideal occlusion-aware thin-lens DP model (half-aperture split) plus optional effect components.
+
+    Args:
+        rim_softness_px: width of the disc rim's ramp, px.
+        gain: overall intensity gain (views are ``gain * H * sharp / 2``).
+        components: effect components (see :class:`Component`), applied in order.
+        config: renderer discretisation.
+    """
+
+    name: ClassVar[str] = "base"
+
+    def __init__(self, rim_softness_px: float = 0.5, gain: float = 1.0, components: Sequence[Component] = (), config: RenderConfig | None = None) -> None:
+        super().__init__()
+        self.params: dict[str, float] = {"rim_softness_px": float(rim_softness_px), "gain": float(gain)}
+        self.bounds: dict[str, tuple[float, float]] = {"rim_softness_px": (0.0, 6.0), "gain": (0.05, 20.0)}
+        self.steps: dict[str, float] = {"rim_softness_px": 0.15, "gain": 0.01}
+        self.components = torch.nn.ModuleList(list(components))
+        self.config = config or RenderConfig()
+
+    # -- composition -----------------------------------------------------------------------------
+    def with_component(self, comp: Component) -> "BaseModel":
+        """A new model with the same base parameters and components plus ``comp``."""
+        m = BaseModel(self.params["rim_softness_px"], self.params["gain"], list(self.components) + [comp], self.config)
+        return m
+
+    def describe(self) -> dict[str, object]:
+        return {"base": dict(self.params), "components": {c.name: c.describe() for c in self.components}}
+
+    # -- rendering -------------------------------------------------------------------------------
+    def _shape(self, nodes: Tensor, channel: int, r2: float) -> PSFShape:
+        one = torch.ones((), device=nodes.device)
+        shape = PSFShape(
+            coc_px=nodes,
+            scale=one,
+            softness_px=one * self.params["rim_softness_px"],
+            profile=one * 0.0,
+            split=one,
+        )
+        for c in self.components:
+            shape = c.shape(shape, channel, r2)
+        return shape
+
+    def _kernel_fn(self, r2: float):
+        chan = any(c.channel_dependent and c.changes_psf for c in self.components)
+        ss = self.config.supersample
+
+        def fn(nodes: Tensor) -> Tensor:
+            if not chan:
+                return half_disc_kernels(self._shape(nodes, -1, r2), ss)[:, None]
+            ks = [half_disc_kernels(self._shape(nodes, ch, r2), ss) for ch in range(3)]
+            n = max(k.shape[-1] for k in ks)
+            ks = [F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in ks]
+            return torch.stack(ks, dim=1)
+
+        return fn
+
+    def render_layers_only(self, batch: DPBatch, field: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The layered render before gain and post hooks: (left, right), each ``H * sharp``."""
+        B, _, H, W = batch.sharp.shape
+        if field is None:
+            field = field_coords(B, H, W, batch.sharp.device)
+        coc = batch.coc_px.float()
+        sharp = batch.sharp.float()
+        for c in self.components:
+            coc = c.coc(coc, batch)
+            sharp = c.sharp(sharp, batch)
+        valid = batch.valid
+        if any(c.field_dependent and c.changes_psf for c in self.components):
+            nodes_r2 = (0.0, 0.5, 1.0)
+            renders = [render_layers(sharp, coc, valid, self._kernel_fn(r2), self.config) for r2 in nodes_r2]
+            r2 = field_r2(field).clamp(0.0, 1.0)
+            w0 = (1 - 2 * r2).clamp(min=0)
+            w2 = (2 * r2 - 1).clamp(min=0)
+            w1 = 1 - w0 - w2
+            left = w0 * renders[0][0] + w1 * renders[1][0] + w2 * renders[2][0]
+            right = w0 * renders[0][1] + w1 * renders[1][1] + w2 * renders[2][1]
+        else:
+            left, right = render_layers(sharp, coc, valid, self._kernel_fn(0.0), self.config)
+        return left, right
+
+    def render(self, batch: DPBatch, field: Tensor | None = None, layers: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """(left, right), each (B, 3, H, W), linear, on the batch's scale.
+
+        Args:
+            field: (B, 2, H, W) field coordinates in [-1, 1] (default: the batch is the whole image).
+            layers: a cached :meth:`render_layers_only` result to reuse (only gain and post hooks run).
+        """
+        B, _, H, W = batch.sharp.shape
+        if field is None:
+            field = field_coords(B, H, W, batch.sharp.device)
+        left, right = layers if layers is not None else self.render_layers_only(batch, field)
+        g = self.params["gain"] / 2.0
+        left, right = left * g, right * g
+        for c in self.components:
+            left, right = c.post(left, right, batch, field)
+        return left, right
+
+    def forward(self, batch: DPBatch, field: Tensor | None = None) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        with torch.no_grad():
+            return self.render(batch, field)
+
+    # -- fitting ---------------------------------------------------------------------------------
+    def fit(self, batches: list[DPBatch], fields: list[Tensor] | None = None) -> dict[str, float]:  # type: ignore[override]
+        """Fit ``rim_softness_px`` and ``gain`` on training batches (measured views required)."""
+        fit_parameters(self, [(self, "rim_softness_px"), (self, "gain")], batches, fields)
+        return dict(self.params)
+
+
+def _masked_residual(model: BaseModel, batch: DPBatch, field: Tensor | None, layers: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    left, right = model.render(batch, field, layers)
+    m = batch.valid.float()
+    r = torch.cat([(left - batch.left) * m, (right - batch.right) * m], dim=1)
+    return r.reshape(-1)
+
+
+@torch.no_grad()
+def fit_parameters(
+    model: BaseModel,
+    targets: Sequence[tuple[object, str]],
+    batches: list[DPBatch],
+    fields: list[Tensor] | None = None,
+    iters: int = 4,
+) -> float:
+    """Levenberg-Marquardt fit of named scalar parameters on the masked L/R squared error.
+
+    Args:
+        model: the model to fit (parameters are changed in place).
+        targets: ``(owner, name)`` pairs; ``owner`` is the model or one of its components, each holding
+            ``params``, ``bounds`` and ``steps`` dicts.
+        batches: measured batches (left/right set).
+        fields: optional per-batch field maps (for crops).
+        iters: LM iterations (each costs 1 + len(targets) renders per batch; the gain costs none).
+
+    Returns:
+        The final mean squared error.
+    """
+    fields = fields or [None] * len(batches)
+    post_only = all(o is model and n == "gain" or getattr(o, "post_only", False) for o, n in targets)
+    cache = [model.render_layers_only(b, f) for b, f in zip(batches, fields)] if post_only else [None] * len(batches)
+
+    def get() -> np.ndarray:
+        return np.array([o.params[n] for o, n in targets], dtype=np.float64)  # type: ignore[attr-defined]
+
+    def put(x: np.ndarray) -> None:
+        for (o, n), v in zip(targets, x):
+            lo, hi = o.bounds.get(n, (-np.inf, np.inf))  # type: ignore[attr-defined]
+            o.params[n] = float(np.clip(v, lo, hi))  # type: ignore[attr-defined]
+
+    def residual() -> Tensor:
+        with torch.no_grad():
+            return torch.cat([_masked_residual(model, b, f, c) for b, f, c in zip(batches, fields, cache)]).double()
+
+    x = get()
+    r = residual()
+    cost = float((r**2).sum())
+    lam = 1e-3
+    for _ in range(iters):
+        cols = []
+        for i, (o, n) in enumerate(targets):
+            if o is model and n == "gain":
+                # views are linear in the gain: d r / d g = (r + measured) / g
+                meas = torch.cat([torch.cat([b.left * b.valid, b.right * b.valid], 1).reshape(-1) for b in batches]).double()
+                cols.append((r + meas) / max(model.params["gain"], 1e-6))
+                continue
+            h = o.steps.get(n, 1e-2)  # type: ignore[attr-defined]
+            xp = x.copy()
+            lo, hi = o.bounds.get(n, (-np.inf, np.inf))  # type: ignore[attr-defined]
+            if xp[i] + h > hi:
+                h = -h
+            xp[i] += h
+            put(xp)
+            cols.append((residual() - r) / h)
+            put(x)
+        J = torch.stack(cols, 1)
+        JtJ = (J.T @ J).numpy()
+        Jtr = (J.T @ r).numpy()
+        improved = False
+        for _try in range(4):
+            A = JtJ + lam * np.diag(np.diag(JtJ) + 1e-12)
+            try:
+                dx = -np.linalg.solve(A, Jtr)
+            except np.linalg.LinAlgError:
+                dx = -np.linalg.lstsq(A, Jtr, rcond=None)[0]
+            put(x + dx)
+            r_new = residual()
+            c_new = float((r_new**2).sum())
+            if c_new < cost:
+                x, r, cost = get(), r_new, c_new
+                lam = max(lam / 5, 1e-6)
+                improved = True
+                break
+            put(x)
+            lam *= 10
+        if not improved:
+            break
+    put(x)
+    return cost / max(r.numel(), 1)
