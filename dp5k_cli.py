@@ -66,6 +66,7 @@ def _register() -> None:
     from dp5k_common.check import check_command
 
     main.add_command(check_command)
+    from dp5k_capture.sim.studio.cli import studio_group; main.add_command(studio_group)  # noqa: E702
 
 
 _register()

@@ -1,0 +1,238 @@
+"""The direct route to learning data: "measured" DP pairs in dataset format v1, with planted effects.
+
+Two sources, one renderer (dp_optics.render_dp, the same optics as ``Studio.expose``):
+
+* :func:`pair_from_rgbd`: any RGBD input (sharp image + depth + imaging parameters) -> sharp / left / right /
+  depth / CoC arrays;
+* :func:`make_dataset`: studio scenes (random seeds or presets) x cameras x f-numbers -> a dataset folder.
+
+Output conventions (docs/data-format.md): ``sharp`` is the f/22 frame of the same lens on the same linear
+scale (diffraction included, noise free); ``left + right`` ~ the full-aperture blur of ``sharp`` (Eq. 2);
+``coc.tif`` is Eq. 6 with the RECORDED focus distance (``focus_offset`` makes the lens focus elsewhere);
+views carry nominal noise ``sigma^2 = NOISE_SHOT * I + NOISE_READ^2`` (linear units) that the ``noise``
+effect raises. Each pair's params.json has extra keys ``"effects"`` (planted effects and their physical
+parameters; ground truth for tests, never to be read by diagnose to decide), ``"true_focus_distance_mm"``,
+``"source"`` and ``"noise"``; dataset.json carries ``"effects"`` and ``"generator"``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from dp5k_common.dataset import PairParams, split_scenes, write_index, write_pair
+from dp5k_common.errors import BadInputError
+from dp5k_common.optics import coc_diameter_px
+from dp5k_common.progress import progress
+
+from .dp_optics import LensSetting, render_dp
+from .effects import EffectSet, effect_parameters, parse_effects
+from .render import view_geometry
+from .rig import FOCAL_LENGTH_MM, SENSOR_SIZE_MM, make_rig
+from .scenes import make_scene
+
+PAPER_F_NUMBERS: tuple[float, ...] = (1.8, 2.0, 2.8, 4.0, 5.6)
+SHARP_F_NUMBER = 22.0
+NOISE_SHOT = 2.0e-5
+"""Nominal shot-noise variance per unit linear intensity (a ~50 000 e- full well scaled to [0, 1])."""
+NOISE_READ = 1.0e-3
+"""Nominal read-noise sigma in linear units."""
+
+
+def as_effects(effects: EffectSet | Mapping[str, float] | Iterable[str] | None) -> EffectSet:
+    """EffectSet from an EffectSet, a {name: strength} mapping, or ``["name=strength", ...]``."""
+    if effects is None:
+        return EffectSet()
+    if isinstance(effects, EffectSet):
+        return effects
+    if isinstance(effects, Mapping):
+        return EffectSet(dict(effects))
+    if isinstance(effects, str):
+        return parse_effects([effects])
+    return parse_effects(list(effects))
+
+
+def _diffraction(img: NDArray[np.float32], f_number: float, pitch_mm: float) -> NDArray[np.float32]:
+    sig = 0.42 * 0.00055 * f_number / pitch_mm
+    if sig <= 0.05:
+        return img
+    return cv2.GaussianBlur(img, (0, 0), sig, borderType=cv2.BORDER_REFLECT)
+
+
+def add_view_noise(img: NDArray[np.float32], effects: EffectSet, rng: np.random.Generator) -> NDArray[np.float32]:
+    """Nominal signal-dependent Gaussian noise in linear units, raised by the ``noise`` effect."""
+    nz = effect_parameters("noise", effects.s("noise"))
+    var = NOISE_SHOT * nz["shot_var_factor"] * np.maximum(img, 0.0) + (NOISE_READ * nz["read_sigma_factor"]) ** 2
+    return (img + rng.standard_normal(img.shape).astype(np.float32) * np.sqrt(var).astype(np.float32)).astype(np.float32)
+
+
+@dataclass
+class RenderedPair:
+    """Arrays of one pair (dataset units): sharp/left/right (H, W, 3) float32 linear in [0, 1],
+    depth_mm (H, W) float32 (0 = invalid), coc_px (H, W) float32 (Eq. 6 with the recorded focus),
+    extra: params.json extra keys."""
+
+    sharp: NDArray[np.float32]
+    left: NDArray[np.float32]
+    right: NDArray[np.float32]
+    depth_mm: NDArray[np.float32]
+    coc_px: NDArray[np.float32]
+    extra: dict[str, Any]
+
+
+def pair_from_rgbd(
+    sharp: NDArray[np.floating],
+    depth_mm: NDArray[np.floating],
+    *,
+    f_number: float,
+    focus_distance_mm: float,
+    focal_length_mm: float = FOCAL_LENGTH_MM,
+    pixel_pitch_mm: float | None = None,
+    effects: EffectSet | Mapping[str, float] | Iterable[str] | None = None,
+    rng: np.random.Generator | None = None,
+    noise: bool = True,
+    sharp_is_pinhole: bool = False,
+) -> RenderedPair:
+    """Render "measured" DP views from an RGBD frame.
+
+    Args:
+        sharp: (H, W, 3) linear image in [0, 1] (treated as the scene's pinhole radiance).
+        depth_mm: (H, W) z-depth in mm, 0 / NaN = invalid (rendered in focus).
+        f_number: DP capture f-number.
+        focus_distance_mm: the RECORDED focus distance (mm); the lens truly focuses there unless the
+            ``focus_offset`` effect is planted.
+        focal_length_mm: thin-lens focal length (mm).
+        pixel_pitch_mm: of this image; default 36 mm / width (full-frame sensor).
+        effects: planted effects.
+        rng: noise generator (default seed 0).
+        noise: add the nominal (and effect) noise to left/right.
+        sharp_is_pinhole: if True, output ``sharp`` is rendered at f/22 from the input; else the input is
+            kept as the sharp image.
+
+    Returns:
+        :class:`RenderedPair`.
+    """
+    img = np.asarray(sharp, dtype=np.float32)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise BadInputError(f"sharp image must be (H, W, 3), got {img.shape}")
+    H, W = img.shape[:2]
+    z = np.asarray(depth_mm, dtype=np.float64)
+    if z.shape != (H, W):
+        raise BadInputError(f"depth shape {z.shape} differs from the image's {(H, W)}")
+    eff = as_effects(effects)
+    rng = rng or np.random.default_rng(0)
+    pitch = float(pixel_pitch_mm) if pixel_pitch_mm else SENSOR_SIZE_MM[0] / W
+    F_true = float(focus_distance_mm) * effect_parameters("focus_offset", eff.s("focus_offset"))["focus_factor"]
+    lens = LensSetting(float(focal_length_mm), float(f_number), F_true, pitch)
+    dp = render_dp(img, z, lens, eff)
+    left = _diffraction(dp.left, f_number, pitch)
+    right = _diffraction(dp.right, f_number, pitch)
+    if sharp_is_pinhole:
+        sh = render_dp(img, z, LensSetting(float(focal_length_mm), SHARP_F_NUMBER, F_true, pitch), EffectSet(), full=True, view_effects=False).full
+        sharp_out = _diffraction(sh, SHARP_F_NUMBER, pitch)
+    else:
+        sharp_out = img
+    if noise:
+        left = add_view_noise(left, eff, rng)
+        right = add_view_noise(right, eff, rng)
+    valid = np.isfinite(z) & (z > 0)
+    depth_out = np.where(valid, z, 0.0).astype(np.float32)
+    coc = coc_diameter_px(np.where(valid, np.rint(z), 0.0), float(focus_distance_mm), float(focal_length_mm), float(f_number), pitch)
+    nz = effect_parameters("noise", eff.s("noise"))
+    extra = {
+        "effects": eff.to_json((W, H)),
+        "true_focus_distance_mm": F_true,
+        "noise": {"shot_var": NOISE_SHOT * nz["shot_var_factor"], "read_sigma": NOISE_READ * nz["read_sigma_factor"]} if noise else None,
+    }
+    return RenderedPair(np.clip(sharp_out, 0, 1).astype(np.float32), np.clip(left, 0, 1), np.clip(right, 0, 1),
+                        depth_out, np.where(valid, coc, np.nan).astype(np.float32), extra)
+
+
+def _scene_list(scenes: int | Sequence[str | int], seed: int) -> list[str | int]:
+    if isinstance(scenes, (int, np.integer)):
+        if scenes < 1:
+            raise BadInputError(f"need at least one scene, got {scenes}")
+        return [int(seed) * 100003 + k for k in range(int(scenes))]
+    return list(scenes)
+
+
+def make_dataset(
+    out_dir: str | os.PathLike[str],
+    scenes: int | Sequence[str | int] = 3,
+    effects: EffectSet | Mapping[str, float] | Iterable[str] | None = None,
+    size: tuple[int, int] = (288, 192),
+    f_numbers: Sequence[float] = PAPER_F_NUMBERS,
+    cameras: Sequence[int] = (0, 1),
+    seed: int = 0,
+    supersample: int = 2,
+    overwrite: bool = False,
+    noise: bool = True,
+) -> Path:
+    """Write a format-v1 dataset of studio scenes with planted effects.
+
+    Args:
+        out_dir: dataset folder (created; existing pairs are an error unless ``overwrite``).
+        scenes: a number of random scenes (seeds derived from ``seed``) or a list of presets / seeds.
+        effects: planted effects (EffectSet, {name: strength} or ["name=strength"]).
+        size: output (W, H) in px; the pixel pitch is 36 mm / W.
+        f_numbers: DP f-numbers per scene and camera (a pair each).
+        cameras: camera indices (0, 1).
+        seed: master seed (scenes, noise).
+        supersample: rays per pixel side.
+        overwrite: replace existing pairs.
+        noise: add nominal noise to the DP views.
+
+    Returns:
+        The dataset folder. Pair ids are ``<scene>_<camera>_f<N>``; splits are by scene.
+    """
+    eff = as_effects(effects)
+    W, H = int(size[0]), int(size[1])
+    if W < 16 or H < 16:
+        raise BadInputError(f"image size must be at least 16 x 16, got {W} x {H}")
+    out = Path(out_dir)
+    if (out / "dataset.json").exists() and not overwrite:
+        raise BadInputError("dataset already exists (pass overwrite to replace it)", where=out / "dataset.json")
+    rig = make_rig(6720.0 / W)
+    rng = np.random.default_rng(seed)
+    scene_ids: dict[str, list[str]] = {}
+    items = _scene_list(scenes, seed)
+    jobs = [(sc, cam) for sc in items for cam in cameras]
+    for sc, cam_i in progress(jobs, desc="studio pairs", unit="view"):
+        scene = make_scene(sc, rig)
+        cam = rig.cameras[cam_i].scaled(W, H)
+        geom = view_geometry(scene, cam, rig.projector, (), supersample)
+        radiance = geom.radiance(None)
+        depth_mm = geom.depth_m * 1000.0
+        Xc = cam.R @ scene.focus_target_m + cam.t
+        uv = cam.K @ (Xc / Xc[2])
+        fx = float(np.clip(np.rint(uv[0]), 0, W - 1))
+        fy = float(np.clip(np.rint(uv[1]), 0, H - 1))
+        F_rec = float(depth_mm[int(fy), int(fx)])
+        if not np.isfinite(F_rec) or F_rec <= cam.focal_length_mm * 1.5:
+            F_rec = float(np.median(depth_mm[np.isfinite(depth_mm)]))
+        sharp = None
+        for N in f_numbers:
+            rp = pair_from_rgbd(radiance, depth_mm, f_number=float(N), focus_distance_mm=F_rec,
+                                focal_length_mm=cam.focal_length_mm, pixel_pitch_mm=cam.pixel_pitch_mm,
+                                effects=eff, rng=rng, noise=noise, sharp_is_pinhole=sharp is None)
+            if sharp is None:
+                sharp = rp.sharp
+            pair_id = f"{scene.name}_{cam.name}_f{N:g}"
+            params = PairParams(pair_id, scene.name, cam.name, float(N), F_rec, cam.focal_length_mm, cam.pixel_pitch_mm,
+                                (fx, fy), (W, H), {**rp.extra, "source": "studio", "scene_seed": scene.seed})
+            write_pair(out, params, sharp=sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm, coc_px=rp.coc_px,
+                       overwrite=overwrite)
+            scene_ids.setdefault(scene.name, []).append(pair_id)
+    split = split_scenes(list(scene_ids), seed=seed)
+    splits = {name: [pid for sc in scs for pid in scene_ids[sc]] for name, scs in split.items()}
+    write_index(out, splits, effects=eff.to_json((W, H)),
+                generator={"tool": "dp5k studio make-dataset", "seed": int(seed), "size": [W, H],
+                           "f_numbers": [float(n) for n in f_numbers], "scenes": [str(s) for s in items]})
+    return out
