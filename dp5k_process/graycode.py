@@ -1,0 +1,161 @@
+"""Gray-code structured-light decoding (positive/negative pairs), multi-scale from one captured set.
+
+Pattern layout (OpenCV contrib ``structured_light.GrayCodePattern``, MSB first): index ``2k`` is column bit k,
+``2k + 1`` its inverse, for ``k < n_col_bits``; then the row bits the same way. The code is the reflected binary
+Gray code, white where the Gray bit is 1.
+
+Multi-scale (paper's projector scales 1, 1/2, 1/4, 1/8): since ``gray(x >> s) == gray(x) >> s``, the patterns of a
+projector ``2^s`` times smaller shown by pixel replication are the ``n - s`` most significant bit pairs of the
+full set. So one decode gives all scales: the code at scale ``2^-s`` is ``code >> s`` and it is valid where the
+``n - s`` leading bits are reliable. A pixel whose fine stripes blur out keeps its coarse code (OpenCV's decoder
+rejects the pixel when any single bit is weak).
+
+Thresholds (3DUNDERWORLD / OpenCV defaults 5 and 40 for 8-bit images) are given as fractions of the images'
+full scale (``full_scale`` = 255 for 8-bit, white - black level for linear raw), so they rescale to 14-bit raw.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dp5k_common.errors import BadInputError
+
+
+def n_bits(n: int) -> int:
+    """Number of Gray-code bits for ``n`` projector columns or rows: ``ceil(log2 n)``."""
+    return int(math.ceil(math.log2(n)))
+
+
+def n_patterns(proj_width: int, proj_height: int) -> int:
+    """Number of pattern images (pattern + inverse per bit), 44 for 1920 x 1200."""
+    return 2 * (n_bits(proj_width) + n_bits(proj_height))
+
+
+@dataclass(frozen=True)
+class GrayCodeConfig:
+    """Decoder settings.
+
+    Attributes:
+        proj_width, proj_height: projector resolution at scale 1 (pixels).
+        white_thr: least |pos - neg| for a reliable bit, fraction of full scale (OpenCV: 5/255).
+        black_thr: least |white - black| for a lit (not shadowed) pixel, fraction of full scale (OpenCV: 40/255).
+        n_scales: number of projector scales 1, 1/2, ... decoded (paper: 4).
+    """
+
+    proj_width: int = 1920
+    proj_height: int = 1200
+    white_thr: float = 5.0 / 255.0
+    black_thr: float = 40.0 / 255.0
+    n_scales: int = 4
+
+
+@dataclass
+class GrayDecode:
+    """One camera's decode.
+
+    Attributes:
+        col, row: (H, W) int32 binary projector column/row codes at scale 1 (only the leading reliable bits
+            are meaningful).
+        col_bits, row_bits: (H, W) uint8 number of leading reliable bits.
+        lit: (H, W) bool, |white - black| above the shadow threshold.
+        cfg: the settings used.
+    """
+
+    col: NDArray[np.int32]
+    row: NDArray[np.int32]
+    col_bits: NDArray[np.uint8]
+    row_bits: NDArray[np.uint8]
+    lit: NDArray[np.bool_]
+    cfg: GrayCodeConfig
+
+    def at_scale(self, s: int) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.bool_]]:
+        """Codes at projector scale ``2^-s`` (s = 0..3): (col, row, valid), (H, W) each.
+
+        Valid pixels are lit, have their ``n - s`` leading column and row bits reliable, and a code inside the
+        scaled projector (``ceil(W / 2^s)`` x ``ceil(H / 2^s)``).
+        """
+        ncb, nrb = n_bits(self.cfg.proj_width), n_bits(self.cfg.proj_height)
+        col = self.col >> s
+        row = self.row >> s
+        wk, hk = -(-self.cfg.proj_width // (1 << s)), -(-self.cfg.proj_height // (1 << s))
+        valid = self.lit & (self.col_bits >= ncb - s) & (self.row_bits >= nrb - s) & (col < wk) & (row < hk)
+        return col, row, valid
+
+    def scale_size(self, s: int) -> tuple[int, int]:
+        """(W, H) of the projector at scale ``2^-s``."""
+        return -(-self.cfg.proj_width // (1 << s)), -(-self.cfg.proj_height // (1 << s))
+
+
+def _as_float(img: NDArray) -> NDArray[np.float32]:
+    a = np.asarray(img)
+    if a.ndim != 2:
+        raise BadInputError(f"structured-light images must be single channel (H, W), got shape {a.shape}")
+    return a.astype(np.float32, copy=False)
+
+
+def decode_graycode(
+    patterns: Sequence[NDArray] | Callable[[int], NDArray],
+    white: NDArray,
+    black: NDArray,
+    full_scale: float,
+    cfg: GrayCodeConfig = GrayCodeConfig(),
+) -> GrayDecode:
+    """Decode one camera's captured Gray-code set, streaming bit by bit (two images in memory at a time).
+
+    Args:
+        patterns: the ``n_patterns`` captured images in OpenCV order, as a sequence or a loader ``i -> image``;
+            each (H, W), any real dtype (8-bit, 16-bit, float; linear or not: only pos/neg order and
+            differences are used).
+        white, black: (H, W) captures of the all-white and all-black projections.
+        full_scale: the images' full-scale value (255 for 8-bit, white level - black level for raw).
+        cfg: settings.
+
+    Returns:
+        The decode; see :class:`GrayDecode`.
+    """
+    load = patterns if callable(patterns) else (lambda i: patterns[i])
+    n_expected = n_patterns(cfg.proj_width, cfg.proj_height)
+    if not callable(patterns) and len(patterns) != n_expected:
+        raise BadInputError(f"expected {n_expected} Gray-code images for a {cfg.proj_width}x{cfg.proj_height} "
+                            f"projector, got {len(patterns)}")
+    w = _as_float(white)
+    b = _as_float(black)
+    lit = np.abs(w - b) > cfg.black_thr * full_scale
+    thr = np.float32(cfg.white_thr * full_scale)
+    out = []
+    offset = 0
+    for nb in (n_bits(cfg.proj_width), n_bits(cfg.proj_height)):
+        code = np.zeros(w.shape, np.int32)
+        prev = np.zeros(w.shape, np.bool_)
+        good = np.ones(w.shape, np.bool_)
+        count = np.zeros(w.shape, np.uint8)
+        for k in range(nb):
+            pos = _as_float(load(offset + 2 * k))
+            neg = _as_float(load(offset + 2 * k + 1))
+            if pos.shape != w.shape or neg.shape != w.shape:
+                raise BadInputError(f"pattern {offset + 2 * k} has shape {pos.shape}, expected {w.shape}")
+            diff = pos - neg
+            good &= np.abs(diff) >= thr
+            count += good
+            prev ^= diff > 0  # Gray -> binary: b_k = b_{k-1} xor g_k
+            code = (code << 1) | prev
+        out.append((code, count))
+        offset += 2 * nb
+    (col, cb), (row, rb) = out
+    return GrayDecode(col, row, cb, rb, lit, cfg)
+
+
+def opencv_patterns(proj_width: int, proj_height: int) -> list[NDArray[np.uint8]]:
+    """The pattern images OpenCV contrib generates (for tests and the studio): uint8 (H, W) each."""
+    import cv2
+
+    gc = cv2.structured_light.GrayCodePattern.create(proj_width, proj_height)
+    ok, pats = gc.generate()
+    if not ok:
+        raise RuntimeError("GrayCodePattern.generate failed")
+    return [np.asarray(p) for p in pats]

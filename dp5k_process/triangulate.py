@@ -1,0 +1,249 @@
+"""Camera-camera correspondences through the projector code, and ray-midpoint triangulation.
+
+3DUNDERWORLD intersects every pair of camera pixels sharing a projector pixel (quadratic per bucket). Here the
+other camera's pixels are first **averaged per projector pixel** (bucket centroids, ``np.bincount``), giving a
+map projector pixel -> pixel of the other camera. Each reference pixel gets a sub-pixel projector coordinate
+(valid-only Gaussian mean of its integer code over about one projector-pixel footprint), the centroid map is
+sampled there bilinearly, the match is refined by Newton steps on the other camera's smoothed code maps, and the
+two rays are intersected (midpoint of the common perpendicular, as 3DUNDERWORLD). The depth lands directly on the reference (DP) camera's own pixel grid,
+so there is no rectify -> unrectify round trip (the rectification is still computed and saved with the
+calibration).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.calibrate import CameraCalibration
+
+
+def normalised_rays(cam: CameraCalibration) -> NDArray[np.float32]:
+    """(H, W, 2) undistorted normalised coordinates ``(x/z, y/z)`` of every pixel centre of ``cam``."""
+    W, H = cam.image_size
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    pts = np.stack([xs, ys], -1).reshape(-1, 1, 2)
+    return cv2.undistortPoints(pts, cam.K, cam.dist).reshape(H, W, 2).astype(np.float32)
+
+
+def footprint_px(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], proj_w: int) -> float:
+    """Mean side, in camera pixels, of the camera area one projector pixel covers: sqrt(valid pixels / codes)."""
+    nv = int(valid.sum())
+    if nv == 0:
+        return 1.0
+    codes = np.unique(row[valid].astype(np.int64) * proj_w + col[valid])
+    return float(np.sqrt(nv / max(1, codes.size)))
+
+
+def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: float) -> NDArray[np.float32]:
+    r"""Valid-only Gaussian mean of an integer code (normalised convolution), a sub-pixel projector coordinate.
+
+    .. math:: \hat c = \frac{G_\sigma * (c\,m)}{G_\sigma * m}
+
+    A Gaussian with sigma about half the stripe footprint suppresses the staircase ripple (its transfer at the
+    stripe frequency 1/p is exp(-2 pi^2 sigma^2 / p^2)); the integer code of pixel centres gives the projector
+    pixel-centre coordinate, so the smoothed code is unbiased on smooth surfaces. NaN where no valid neighbour.
+    """
+    c = np.where(valid, code, 0).astype(np.float32)
+    m = valid.astype(np.float32)
+    num = cv2.GaussianBlur(c, (0, 0), sigma_px, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(m, (0, 0), sigma_px, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num / den
+    out[~valid] = np.nan
+    return out
+
+
+def bucket_centroids_px(
+    col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], proj_size: tuple[int, int]
+) -> NDArray[np.float32]:
+    """Mean pixel position (x, y) of the camera pixels of each projector pixel, (Hp, Wp, 2), NaN where none.
+
+    This is 3DUNDERWORLD's bucket, averaged instead of enumerating all pixel pairs (linear, ``np.bincount``).
+    """
+    Wp, Hp = proj_size
+    H, W = valid.shape
+    ys, xs = np.nonzero(valid)
+    idx = row[ys, xs].astype(np.int64) * Wp + col[ys, xs]
+    n = np.bincount(idx, minlength=Wp * Hp).astype(np.float64)
+    sx = np.bincount(idx, weights=xs, minlength=Wp * Hp)
+    sy = np.bincount(idx, weights=ys, minlength=Wp * Hp)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.stack([sx / n, sy / n], -1).reshape(Hp, Wp, 2).astype(np.float32)
+
+
+def _remap(img: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float32]) -> NDArray[np.float32]:
+    return cv2.remap(img, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def sample_centroids(cen: NDArray[np.float32], u: NDArray[np.float32], v: NDArray[np.float32]
+                     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Bilinear sample of a NaN-holed centroid map at projector coordinates (u, v), weights renormalised over
+    the valid neighbours. Returns (points (..., 2), weight (...)); weight 0 = no neighbour."""
+    ok = np.isfinite(cen[..., 0])
+    data = np.where(ok[..., None], cen, 0).astype(np.float32)
+    mu, mv = np.nan_to_num(u, nan=-10).astype(np.float32), np.nan_to_num(v, nan=-10).astype(np.float32)
+    num = _remap(data, mu, mv)
+    den = _remap(ok.astype(np.float32), mu, mv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pts = num / den[..., None]
+    return pts, den
+
+
+def midpoint_triangulate(
+    a: NDArray[np.float64], b_other: NDArray[np.float64], R: NDArray[np.float64], T: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Midpoint of the common perpendicular of two rays (3DUNDERWORLD), in the reference frame.
+
+    Args:
+        a: (N, 3) ray directions in the reference camera (through its centre, the origin).
+        b_other: (N, 3) ray directions in the other camera's frame; ``X_other = R X_ref + T``, T in metres.
+
+    Returns:
+        points (N, 3) metres in the reference frame (NaN behind a camera), gap (N,) metres between the rays.
+    """
+    C = -R.T @ T  # other camera centre in the reference frame
+    b = b_other @ R  # rows R^T b
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    aC = a @ C
+    bC = b @ C
+    det = ab * ab - aa * bb
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = (ab * bC - bb * aC) / det
+        mu = (aa * bC - ab * aC) / det
+    pa = lam[:, None] * a
+    pb = C[None, :] + mu[:, None] * b
+    pts = 0.5 * (pa + pb)
+    pts[(lam <= 0) | (mu <= 0)] = np.nan
+    return pts, np.linalg.norm(pa - pb, axis=1)
+
+
+@dataclass(frozen=True)
+class TriangulationConfig:
+    """Settings.
+
+    Attributes:
+        max_gap_px: largest ray gap, in reference-camera pixels at the point's depth (epipolar check).
+        max_code_residual: largest |code(q) - code(ref)| after refinement, in projector pixels of the scale.
+        newton_iters: refinement steps of the match in the other camera.
+        sigma_factor: Gaussian sigma of the code smoothing = sigma_factor x footprint (camera px), at least 0.7.
+    """
+
+    max_gap_px: float = 1.5
+    max_code_residual: float = 0.35
+    newton_iters: int = 3
+    sigma_factor: float = 0.8
+
+
+@dataclass
+class CodeView:
+    """One camera's codes at one scale, prepared for matching.
+
+    Attributes:
+        u, v: (H, W) smoothed (sub-pixel) projector column/row, NaN where invalid.
+        valid: (H, W) bool decode validity.
+        centroids: (Hp, Wp, 2) mean pixel position per projector pixel.
+        grads: (H, W, 4) du/dx, du/dy, dv/dx, dv/dy of the smoothed codes.
+        footprint_px: camera pixels per projector pixel (side).
+    """
+
+    u: NDArray[np.float32]
+    v: NDArray[np.float32]
+    valid: NDArray[np.bool_]
+    centroids: NDArray[np.float32]
+    grads: NDArray[np.float32]
+    footprint_px: float
+
+
+def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_],
+              proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig()) -> CodeView:
+    """Smooth codes, their gradients and bucket centroids of one camera at one scale."""
+    fp = footprint_px(col, row, valid, proj_size[0])
+    sigma = max(0.7, cfg.sigma_factor * fp)
+    u = smooth_code(col, valid, sigma)
+    v = smooth_code(row, valid, sigma)
+    g = []
+    for c in (u, v):
+        z = np.nan_to_num(c)
+        g.append(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
+        g.append(cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
+    return CodeView(u, v, valid, bucket_centroids_px(col, row, valid, proj_size), np.stack(g, -1), fp)
+
+
+def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig()
+                   ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """For every valid reference pixel, the sub-pixel point of the other camera with the same projector code.
+
+    Start at the other camera's bucket centroid sampled at the reference's smoothed code, then Newton steps on
+    the other camera's smoothed code maps: ``q <- q + J^-1 ((u, v)_ref - (u, v)_other(q))``.
+
+    Returns:
+        q (H, W, 2) pixel coordinates in the other camera (NaN where unmatched), ok (H, W) bool.
+    """
+    q, w = sample_centroids(other.centroids, ref.u, ref.v)
+    ok = ref.valid & np.isfinite(ref.u) & (w > 0) & np.isfinite(q[..., 0])
+    valid_o = np.where(other.valid & np.isfinite(other.u), 1.0, 0.0).astype(np.float32)
+    uo, vo = np.nan_to_num(other.u), np.nan_to_num(other.v)
+    step_max = 2.0 * max(1.0, other.footprint_px)
+    res = np.full(ref.u.shape, np.inf, np.float32)
+    for _ in range(max(1, cfg.newton_iters)):
+        qx = np.where(ok, q[..., 0], -10).astype(np.float32)
+        qy = np.where(ok, q[..., 1], -10).astype(np.float32)
+        m = _remap(valid_o, qx, qy)
+        cu = _remap(uo, qx, qy)
+        cv_ = _remap(vo, qx, qy)
+        gr = _remap(other.grads, qx, qy)
+        du = np.nan_to_num(ref.u) - cu
+        dv = np.nan_to_num(ref.v) - cv_
+        a, b, c, d = gr[..., 0], gr[..., 1], gr[..., 2], gr[..., 3]
+        det = a * d - b * c
+        good = ok & (m > 0.999) & (np.abs(det) > 1e-8)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sx = (d * du - b * dv) / det
+            sy = (-c * du + a * dv) / det
+        good &= (np.abs(sx) <= step_max) & (np.abs(sy) <= step_max)
+        q[..., 0] = np.where(good, q[..., 0] + sx, q[..., 0])
+        q[..., 1] = np.where(good, q[..., 1] + sy, q[..., 1])
+        res = np.where(good, np.hypot(du, dv), np.inf).astype(np.float32)
+        ok = good
+    # residual after the last step
+    qx = np.where(ok, q[..., 0], -10).astype(np.float32)
+    qy = np.where(ok, q[..., 1], -10).astype(np.float32)
+    m = _remap(valid_o, qx, qy)
+    res = np.hypot(np.nan_to_num(ref.u) - _remap(uo, qx, qy), np.nan_to_num(ref.v) - _remap(vo, qx, qy))
+    ok &= (m > 0.999) & (res <= cfg.max_code_residual)
+    q[~ok] = np.nan
+    return q, ok
+
+
+def depth_from_match(
+    ref_rays: NDArray[np.float32], ref_fx_px: float, q_px: NDArray[np.float32], ok: NDArray[np.bool_],
+    other: CameraCalibration, R: NDArray[np.float64], T: NDArray[np.float64],
+    cfg: TriangulationConfig = TriangulationConfig(),
+) -> NDArray[np.float32]:
+    """Depth z (metres, NaN invalid) on the reference grid by ray-midpoint triangulation of matched pixels.
+
+    Args:
+        ref_rays: (H, W, 2) reference normalised coordinates; ref_fx_px its focal length (px).
+        q_px: (H, W, 2) matched pixel in the other camera; ok (H, W) where matched.
+        other: the other camera's intrinsics; R, T: ``X_other = R X_ref + T`` (metres).
+    """
+    H, W = ok.shape
+    depth = np.full((H, W), np.nan, np.float32)
+    n = int(ok.sum())
+    if n == 0:
+        return depth
+    qn = cv2.undistortPoints(q_px[ok].reshape(-1, 1, 2).astype(np.float64), other.K, other.dist).reshape(-1, 2)
+    a = np.concatenate([ref_rays[ok].astype(np.float64), np.ones((n, 1))], 1)
+    b = np.concatenate([qn, np.ones((n, 1))], 1)
+    X, gap = midpoint_triangulate(a, b, R, np.asarray(T, np.float64).ravel())
+    z = X[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        good = np.isfinite(z) & (z > 0) & (gap / z * ref_fx_px <= cfg.max_gap_px)
+    depth[ok] = np.where(good, z, np.nan)
+    return depth
