@@ -73,8 +73,10 @@ class UNetKPN(nn.Module):
         cfg: the :class:`ModelConfig`.
 
     Shape:
-        ``forward(x)`` with x (B, 5, H, W), H and W multiples of ``2 ** levels``, returns
+        ``predict(x)`` with x (B, 5, H, W), H and W multiples of ``2 ** levels``, returns
         ``(weights, res_l, res_r)``: weights (B, K*K, H, W) or (B, 3, K*K, H, W), residuals (B, 3, H, W).
+        ``forward(sharp, inputs)`` with sharp (B, 3, H, W) and inputs (B, 5, H, W) of any size returns the
+        two views ``(left, right)``, each (B, 3, H, W) (everything inside ``forward``, so DDP sees it all).
     """
 
     in_channels = 5
@@ -103,7 +105,8 @@ class UNetKPN(nn.Module):
     def multiple(self) -> int:
         return 2**self.cfg.levels
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The per-pixel left kernels (softmax) and the two residual images (see class docstring)."""
         skips = []
         h = x
         for i, block in enumerate(self.enc):
@@ -124,6 +127,20 @@ class UNetKPN(nn.Module):
             weights = torch.softmax(logits, dim=1)
         return weights, out[:, self.n_kernel : self.n_kernel + 3], out[:, self.n_kernel + 3 :]
 
+    def forward(self, sharp: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Both DP views from the sharp image and the network input (pads to a multiple of ``2 ** levels``)."""
+        H, W = sharp.shape[-2:]
+        m = self.multiple
+        ph, pw = (-H) % m, (-W) % m
+        x = F.pad(inputs, (0, pw, 0, ph), mode="replicate") if (ph or pw) else inputs
+        weights, res_l, res_r = self.predict(x)
+        weights = weights[..., :H, :W]
+        gain_l = self.view_gain[0].view(1, 3, 1, 1)
+        gain_r = self.view_gain[1].view(1, 3, 1, 1)
+        left = gain_l * apply_kernels(sharp, weights) + res_l[..., :H, :W]
+        right = gain_r * apply_kernels(sharp, flip_lr(weights)) + res_r[..., :H, :W]
+        return left, right
+
 
 def normalize_depth(depth_mm: Tensor, valid: Tensor) -> Tensor:
     """Per image, min-max scale valid depth to [0, 1]; invalid pixels -1 (the paper's depth input).
@@ -140,21 +157,3 @@ def normalize_depth(depth_mm: Tensor, valid: Tensor) -> Tensor:
     span = (hi - lo).clamp_min(1e-6)
     norm = ((depth_mm - lo) / span).clamp(0, 1)
     return torch.where(valid, norm, torch.full_like(depth_mm, -1.0))
-
-
-def render_views(net: UNetKPN, sharp: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
-    """Run the network on ``inputs`` (B, 5, H, W) and form both views from ``sharp`` (B, 3, H, W).
-
-    Pads to a multiple of ``2 ** levels`` (replicate) and crops back.
-    """
-    H, W = sharp.shape[-2:]
-    m = net.multiple
-    ph, pw = (-H) % m, (-W) % m
-    x = F.pad(inputs, (0, pw, 0, ph), mode="replicate") if (ph or pw) else inputs
-    weights, res_l, res_r = net(x)
-    weights = weights[..., :H, :W]
-    gain_l = net.view_gain[0].view(1, 3, 1, 1)
-    gain_r = net.view_gain[1].view(1, 3, 1, 1)
-    left = gain_l * apply_kernels(sharp, weights) + res_l[..., :H, :W]
-    right = gain_r * apply_kernels(sharp, flip_lr(weights)) + res_r[..., :H, :W]
-    return left, right

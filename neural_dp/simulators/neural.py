@@ -12,7 +12,7 @@ from torch import Tensor
 from dp5k_common.errors import BadInputError
 
 from ..batch import DPBatch
-from ..model import ModelConfig, UNetKPN, normalize_depth, render_views
+from ..model import ModelConfig, UNetKPN, normalize_depth
 from .interface import DPSimulator
 
 
@@ -67,7 +67,7 @@ class NeuralDPSimulator(DPSimulator):
         H, W = batch.sharp.shape[-2:]
         tile = self.cfg.tile_px
         if self.training or tile <= 0 or (H <= tile and W <= tile):
-            return render_views(self.net, batch.sharp, inputs)
+            return self.net(batch.sharp, inputs)
         return self._forward_tiled(batch.sharp, inputs, tile, self.cfg.tile_margin_px)
 
     def _forward_tiled(self, sharp: Tensor, inputs: Tensor, tile: int, margin: int) -> tuple[Tensor, Tensor]:
@@ -80,7 +80,7 @@ class NeuralDPSimulator(DPSimulator):
             for x0 in _tiles(W, tw):
                 ya, yb = max(0, y0 - margin), min(H, y0 + th + margin)
                 xa, xb = max(0, x0 - margin), min(W, x0 + tw + margin)
-                l, r = render_views(self.net, sharp[..., ya:yb, xa:xb], inputs[..., ya:yb, xa:xb])
+                l, r = self.net(sharp[..., ya:yb, xa:xb], inputs[..., ya:yb, xa:xb])
                 sy, sx = y0 - ya, x0 - xa
                 left[..., y0 : y0 + th, x0 : x0 + tw] = l[..., sy : sy + th, sx : sx + tw]
                 right[..., y0 : y0 + th, x0 : x0 + tw] = r[..., sy : sy + th, sx : sx + tw]

@@ -1,0 +1,198 @@
+"""Table 2: every simulator on the same pairs, masked MAE / PSNR / SSIM, invalid depth masked out.
+
+``evaluate(...)`` runs each simulator on every pair of a split at full resolution, averages the three
+masked metrics over the left and right views per pair and then over pairs (the paper's protocol), and
+writes into ``out_dir``:
+
+* ``metrics.json``: per simulator the means, plus every pair's numbers and the run's settings;
+* ``table.md``: the Markdown table (rows MAE / PSNR / SSIM, one column per simulator, best in bold);
+* ``figures/<pair_id>.png``: for the first pairs, the measured views and each simulator's views with
+  their absolute-error maps side by side (invalid depth painted black, as the paper's Fig. 10).
+
+Simulators with free parameters (the physical base model) are first fitted on training pairs
+(``DPSimulator.fit``); the peers keep their published defaults.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dp5k_common.dataset import DatasetReader
+from dp5k_common.errors import BadInputError
+from dp5k_common.io import atomic_path, write_json_atomic
+from dp5k_common.progress import progress
+
+from .batch import DPBatch
+from .data import CropSpec, DPPairDataset, collate_dp
+from .metrics import view_metrics
+from .simulators.interface import DPSimulator
+from .simulators.registry import available_simulators, get_simulator
+
+logger = logging.getLogger(__name__)
+
+TITLES = {"disk": "Translating disk", "butterworth": "Butterworth", "raytrace": "Ray tracing",
+          "base": "Physical base", "neural": "Neural DP"}
+
+
+@dataclass
+class EvalResult:
+    """Means per simulator (``{"disk": {"mae", "psnr", "ssim", "pairs", "seconds"}, ...}``) and the files written."""
+
+    means: dict[str, dict[str, float]]
+    out_dir: Path
+    table_md: str
+
+
+def _fit_batches(root: Path, n_pairs: int, crop_px: int, device: torch.device) -> list[DPBatch]:
+    try:
+        ds = DPPairDataset(root, "train", CropSpec(crop_px, vflip=False), seed=0)
+    except Exception:  # noqa: BLE001 - an empty train split just means nothing to fit on
+        return []
+    return [collate_dp([ds[i]]).to(device) for i in range(min(n_pairs, len(ds.ids)))]
+
+
+def _overrides_fit(sim: DPSimulator) -> bool:
+    return type(sim).fit is not DPSimulator.fit
+
+
+def markdown_table(means: dict[str, dict[str, float]]) -> str:
+    """Table 2 layout: metrics as rows, simulators as columns; the best value of each row in bold."""
+    names = list(means)
+    header = "| | " + " | ".join(TITLES.get(n, n) for n in names) + " |"
+    lines = [header, "|---|" + "---|" * len(names)]
+    for key, label, fmt, better in (("mae", "MAE", "{:.4f}", min), ("psnr", "PSNR (dB)", "{:.2f}", max),
+                                    ("ssim", "SSIM", "{:.4f}", max)):
+        vals = [means[n][key] for n in names]
+        finite = [v for v in vals if np.isfinite(v)]
+        best = better(finite) if finite else None
+        cells = [("**" + fmt.format(v) + "**") if v == best else fmt.format(v) for v in vals]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _display(img: Tensor) -> np.ndarray:
+    """(3, H, W) linear -> (H, W, 3) gamma 1/2.2 for viewing, clipped to [0, 1]."""
+    return np.clip(img.detach().float().cpu().numpy().transpose(1, 2, 0), 0, 1) ** (1 / 2.2)
+
+
+def save_figure(path: Path, batch: DPBatch, views: dict[str, tuple[Tensor, Tensor]]) -> None:
+    """Rows: measured, then each simulator; columns: left, right, |left error|, |right error|."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    valid = batch.valid[0, 0].cpu().numpy()
+    rows = [("measured", (batch.left, batch.right))] + list(views.items())
+    H, W = valid.shape
+    fig, axes = plt.subplots(len(rows), 4, figsize=(4 * 2.6, len(rows) * 2.6 * H / W + 0.4), squeeze=False)
+    assert batch.left is not None and batch.right is not None
+    vmax = 0.1
+    for r, (name, (left, right)) in enumerate(rows):
+        for c, img in enumerate((left, right)):
+            show = _display(img[0]) * valid[..., None]
+            axes[r, c].imshow(show)
+        for c, (pred, gt) in enumerate(((left, batch.left), (right, batch.right))):
+            err = (pred[0] - gt[0]).abs().mean(0).cpu().numpy() * valid
+            axes[r, 2 + c].imshow(err, cmap="magma", vmin=0, vmax=vmax)
+        axes[r, 0].set_ylabel(TITLES.get(name, name), fontsize=8)
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    for c, title in enumerate(("left", "right", f"|left err| (0..{vmax})", f"|right err| (0..{vmax})")):
+        axes[0, c].set_title(title, fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *, split: str = "test",
+             simulators: list[str] | None = None, checkpoint: str | os.PathLike[str] | None = None,
+             device: str = "cpu", max_pairs: int = 0, figures: int = 2, fit_pairs: int = 8,
+             fit_crop_px: int = 256) -> EvalResult:
+    """Compare simulators on one split (see module docstring).
+
+    Args:
+        dataset: format-v1 dataset.
+        out_dir: output folder (created).
+        split: which split to evaluate.
+        simulators: names (default: every available one; ``neural`` only with a checkpoint).
+        checkpoint: the Neural DP checkpoint (``best.pt`` written by ``dp5k train``).
+        device: torch device for the simulators.
+        max_pairs: evaluate at most this many pairs (0 = all).
+        figures: how many pairs get a comparison picture.
+        fit_pairs / fit_crop_px: training crops given to simulators with free parameters.
+
+    Raises:
+        BadInputError: empty split, unknown simulator, ``neural`` requested without a checkpoint.
+    """
+    root, out = Path(dataset), Path(out_dir)
+    reader = DatasetReader(root)
+    ids = reader.ids(split)
+    if max_pairs > 0:
+        ids = ids[:max_pairs]
+    if not ids:
+        raise BadInputError(f"split '{split}' has no pairs to evaluate", where=root / "dataset.json")
+    names = simulators or available_simulators(with_neural=checkpoint is not None)
+    if "neural" in names and checkpoint is None:
+        raise BadInputError("evaluating 'neural' needs a checkpoint (dp5k train, or --checkpoint)", where="evaluate")
+    dev = torch.device(device)
+    sims: dict[str, DPSimulator] = {}
+    fitted: dict[str, dict[str, float]] = {}
+    fit_batches: list[DPBatch] | None = None
+    for name in names:
+        sim = get_simulator(name, checkpoint if name == "neural" else None).to(dev)
+        sim.eval()
+        if _overrides_fit(sim):
+            if fit_batches is None:
+                fit_batches = _fit_batches(root, fit_pairs, fit_crop_px, dev)
+            if fit_batches:
+                fitted[name] = {k: float(v) for k, v in sim.fit(fit_batches).items()}
+        sims[name] = sim
+    ds = DPPairDataset(root, split, CropSpec(), cache=False)
+    index = {pid: i for i, pid in enumerate(ds.ids)}
+    per_pair: dict[str, dict[str, dict[str, float]]] = {}
+    seconds = {n: 0.0 for n in names}
+    out.mkdir(parents=True, exist_ok=True)
+    for k, pid in enumerate(progress(ids, desc=f"evaluate {split}", unit="pair")):
+        batch = collate_dp([ds[index[pid]]]).to(dev)
+        views: dict[str, tuple[Tensor, Tensor]] = {}
+        per_pair[pid] = {}
+        for name, sim in sims.items():
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                left, right = sim(batch)
+            seconds[name] += time.perf_counter() - t0
+            left, right = left.float(), right.float()
+            m = view_metrics(left, right, batch.left, batch.right, batch.valid)
+            per_pair[pid][name] = {key: float(v[0]) for key, v in m.items()}
+            views[name] = (left, right)
+        if k < figures:
+            save_figure(out / "figures" / f"{pid}.png", batch, views)
+    means: dict[str, dict[str, float]] = {}
+    for name in names:
+        vals = {key: [per_pair[p][name][key] for p in ids] for key in ("mae", "psnr", "ssim")}
+        means[name] = {key: float(np.nanmean(v)) for key, v in vals.items()}
+        means[name]["pairs"] = float(len(ids))
+        means[name]["seconds_per_pair"] = seconds[name] / len(ids)
+    table = markdown_table(means)
+    report: dict[str, Any] = {
+        "dataset": str(root), "split": split, "pairs": ids, "simulators": names,
+        "checkpoint": None if checkpoint is None else str(checkpoint), "device": str(dev),
+        "metric_definitions": "masked MAE/PSNR/SSIM (neural_dp.metrics), mean of left and right view, mean over pairs",
+        "fitted_parameters": fitted, "means": means, "per_pair": per_pair,
+    }
+    write_json_atomic(out / "metrics.json", report)
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(f"Split '{split}' of {root.name}, {len(ids)} pairs.\n\n" + table)
+    return EvalResult(means, out, table)

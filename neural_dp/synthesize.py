@@ -1,0 +1,330 @@
+r"""Turn off-the-shelf pinhole RGBD frames into DP pairs (Sec. 4.2 and 5.3.1).
+
+Input layout (one folder per frame)::
+
+    IN/<frame>/image.png        RGB, 8- or 16-bit (sRGB-encoded by default; --encoding linear if not)
+    IN/<frame>/depth.png        uint16 depth in mm, 0 = invalid         (or depth.npy, see below)
+    IN/<frame>/depth.npy        float depth (z, not ray length) in mm times --depth-scale; 0/NaN/inf = invalid
+    IN/<frame>/intrinsics.json  {"fx": px, "fy": px, "cx": px, "cy": px, "width": px, "height": px}
+
+Per frame:
+
+1. **Focus.** A fixed ``focus_mm`` or, as in Sec. 5.3.1, the mean valid depth in a random 60 x 40 px window
+   whose centre (the focus point) lies in ``[100, W - 100] x [100, H - 100]`` (at 1024 x 768; scaled with
+   the frame's size).
+2. **f-number.** Fixed, or drawn from {1.8, 2, 2.8, 4, 5.6}.
+3. **Sensor size (5.3.1).** A pinhole dataset gives ``f_pin`` in pixels only; with a pixel pitch ``p`` (mm)
+   it is ``f_pin_mm = fx * p`` and Eq. (7) gives :math:`f_{thin} = 1 / (1/F + 1/f_{pin})`. The CoC in
+   pixels (Eq. 6 / p) grows monotonically with ``p``, so ``p`` is chosen (bisection on a scale of the
+   nominal 36 mm-wide sensor) such that the 99th percentile of ``|CoC|`` at the reference f-number
+   (1.8) equals ``max_coc_px`` (the training data's range; default 20 px, the released code's bound),
+   which keeps CoC radii inside what the simulator was trained on. Every length stays in its unit: the
+   released code passes a focal length in mm where pixels are expected; here Eq. 6 gets mm and divides
+   by the pitch in mm.
+4. **Simulation** with any registered simulator, in batches of frames of equal size.
+
+Output is a format-v1 dataset (one pair per frame, scene = frame, whole frames assigned to
+train/val/test with :func:`~dp5k_common.dataset.split_scenes`). Finished pairs are kept: a second run
+skips them (resume), and the random draws of a frame depend only on ``(seed, frame name)``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dp5k_common.dataset import DatasetReader, PairParams, split_scenes, write_index, write_pair
+from dp5k_common.errors import BadInputError, PartialFailureError
+from dp5k_common.io import read_image_raw, read_json
+from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
+from dp5k_common.progress import progress
+
+from .batch import DPBatch
+from .simulators.registry import get_simulator
+
+logger = logging.getLogger(__name__)
+
+PAPER_F_NUMBERS: tuple[float, ...] = (1.8, 2.0, 2.8, 4.0, 5.6)
+FOCUS_WINDOW_PX = (60, 40)
+"""(width, height) of the focus window (Sec. 5.3.1)."""
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """How frames become DP pairs."""
+
+    simulator: str = "neural"
+    checkpoint: str | None = None
+    f_numbers: tuple[float, ...] = PAPER_F_NUMBERS
+    """One value = fixed; several = one drawn per frame."""
+    focus_mm: float | None = None
+    """Fixed focus distance; None = the random focus window of Sec. 5.3.1."""
+    sensor_width_mm: float = 36.0
+    """Nominal sensor width before the 5.3.1 adjustment."""
+    max_coc_px: float | None = 20.0
+    """Target 99th-percentile |CoC| at f/``reference_f_number``; None = no adjustment (nominal sensor)."""
+    reference_f_number: float = 1.8
+    encoding: str = "srgb"
+    """How image.png is encoded: "srgb" (linearised) or "linear"."""
+    depth_scale: float = 1.0
+    """depth.npy values times this are mm (1000 for metres)."""
+    batch_size: int = 4
+    seed: int = 0
+    device: str = "cpu"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Frame:
+    """One loaded RGBD frame. image (H, W, 3) linear float32; depth_mm (H, W) float32, 0 = invalid."""
+
+    name: str
+    image: np.ndarray
+    depth_mm: np.ndarray
+    fx_px: float
+    fy_px: float
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def load_frame(folder: Path, encoding: str = "srgb", depth_scale: float = 1.0) -> Frame:
+    """Read one frame folder (module docstring). Raises BadInputError naming the file on any problem."""
+    img_path = folder / "image.png"
+    img = read_image_raw(img_path)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise BadInputError(f"must be an RGB image, got shape {img.shape}", where=img_path)
+    if img.dtype == np.uint8:
+        img01 = img.astype(np.float64) / 255.0
+    elif img.dtype == np.uint16:
+        img01 = img.astype(np.float64) / 65535.0
+    else:
+        raise BadInputError(f"must be 8- or 16-bit, got {img.dtype}", where=img_path)
+    if encoding == "srgb":
+        img01 = srgb_to_linear(img01)
+    elif encoding != "linear":
+        raise BadInputError(f"unknown encoding {encoding!r} (srgb or linear)", where="synthesize")
+    H, W = img01.shape[:2]
+    if (folder / "depth.png").is_file():
+        d = read_image_raw(folder / "depth.png")
+        if d.dtype != np.uint16 or d.ndim != 2:
+            raise BadInputError(f"must be single-channel uint16 mm, got {d.dtype} {d.shape}", where=folder / "depth.png")
+        depth = d.astype(np.float32)
+    elif (folder / "depth.npy").is_file():
+        try:
+            d = np.load(folder / "depth.npy", allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise BadInputError(f"cannot read ({exc})", where=folder / "depth.npy") from None
+        if d.ndim != 2:
+            raise BadInputError(f"must be (H, W), got {d.shape}", where=folder / "depth.npy")
+        depth = np.where(np.isfinite(d) & (d > 0), d * depth_scale, 0).astype(np.float32)
+    else:
+        raise BadInputError("no depth.png or depth.npy", where=folder)
+    if depth.shape != (H, W):
+        raise BadInputError(f"depth is {depth.shape[1]}x{depth.shape[0]} but image is {W}x{H}", where=folder)
+    ipath = folder / "intrinsics.json"
+    try:
+        intr = read_json(ipath)
+    except BadInputError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise BadInputError(f"cannot read ({exc})", where=ipath) from None
+    if not isinstance(intr, dict) or any(k not in intr for k in ("fx", "fy", "width", "height")):
+        raise BadInputError("needs fx, fy, cx, cy, width, height (px)", where=ipath)
+    if int(intr["width"]) != W or int(intr["height"]) != H:
+        raise BadInputError(f"size {intr['width']}x{intr['height']} disagrees with image {W}x{H}", where=ipath)
+    fx, fy = float(intr["fx"]), float(intr["fy"])
+    if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):
+        raise BadInputError(f"fx, fy must be positive, got {fx}, {fy}", where=ipath)
+    if not (depth > 0).any():
+        raise BadInputError("no valid depth", where=folder)
+    return Frame(folder.name, img01.astype(np.float32), depth, fx, fy)
+
+
+def random_focus(depth_mm: np.ndarray, rng: np.random.Generator, tries: int = 50) -> tuple[float, tuple[float, float]]:
+    """Mean valid depth in a random 60 x 40 window (Sec. 5.3.1). Returns (focus_mm, (x, y) window centre)."""
+    H, W = depth_mm.shape
+    mx, my = int(round(W * 100 / 1024)), int(round(H * 100 / 768))
+    ww, wh = min(FOCUS_WINDOW_PX[0], W), min(FOCUS_WINDOW_PX[1], H)
+    for _ in range(tries):
+        cx = int(rng.integers(min(mx, W - 1), max(W - mx, mx + 1)))
+        cy = int(rng.integers(min(my, H - 1), max(H - my, my + 1)))
+        x0 = int(np.clip(cx - ww // 2, 0, W - ww))
+        y0 = int(np.clip(cy - wh // 2, 0, H - wh))
+        win = depth_mm[y0 : y0 + wh, x0 : x0 + ww]
+        if (win > 0).any():
+            return float(win[win > 0].mean()), (float(cx), float(cy))
+    valid = depth_mm[depth_mm > 0]
+    return float(np.median(valid)), (W / 2, H / 2)
+
+
+def optics_for_frame(depth_mm: np.ndarray, fx_px: float, focus_mm: float, width_px: int, cfg: SynthConfig) -> tuple[float, float, float]:
+    """Pixel pitch and thin-lens focal length for one frame (module docstring, step 3).
+
+    Returns:
+        (pixel_pitch_mm, focal_length_mm (thin lens, Eq. 7), sensor scale relative to the nominal sensor).
+    """
+    valid = depth_mm[depth_mm > 0]
+    sample = valid if valid.size <= 20000 else valid[:: valid.size // 20000 + 1]
+
+    def optics(scale: float) -> tuple[float, float]:
+        pitch = scale * cfg.sensor_width_mm / width_px
+        return pitch, thin_lens_focal_length_mm(fx_px * pitch, focus_mm)
+
+    def p99(scale: float) -> float:
+        pitch, f = optics(scale)
+        if not focus_mm > f:
+            return math.inf
+        return float(np.percentile(np.abs(coc_diameter_px(sample, focus_mm, f, cfg.reference_f_number, pitch)), 99))
+
+    scale = 1.0
+    if cfg.max_coc_px is not None and p99(1.0) > 0:
+        lo, hi = math.log(1e-4), math.log(1e4)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if p99(math.exp(mid)) < cfg.max_coc_px:
+                lo = mid
+            else:
+                hi = mid
+        scale = math.exp(0.5 * (lo + hi))
+    pitch, f = optics(scale)
+    return pitch, f, scale
+
+
+def _frame_rng(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(name.encode())])
+
+
+def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cfg: SynthConfig) -> dict[str, Any]:
+    """Convert every frame folder of ``in_dir`` into a pair of the dataset ``out_dir`` (resumable).
+
+    Returns:
+        Summary ``{"written": n, "skipped": n, "failed": {frame: error}, "pairs": n_total}``.
+
+    Raises:
+        BadInputError: ``in_dir`` has no frame folders, or bad options.
+        PartialFailureError: some frames failed (the others were written; the index lists them).
+    """
+    src, out = Path(in_dir), Path(out_dir)
+    if not src.is_dir():
+        raise BadInputError("input folder not found", where=src)
+    frames = sorted(p for p in src.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not frames:
+        raise BadInputError("no frame folders (expected IN/<frame>/image.png, depth, intrinsics.json)", where=src)
+    if not cfg.f_numbers or any(n <= 0 for n in cfg.f_numbers):
+        raise BadInputError(f"f-numbers must be positive, got {cfg.f_numbers}", where="synthesize")
+    sim = get_simulator(cfg.simulator, cfg.checkpoint).to(cfg.device)
+    sim.eval()
+    out.mkdir(parents=True, exist_ok=True)
+    scene_split = split_scenes([f.name for f in frames], seed=cfg.seed)
+    split_of = {s: name for name, scenes in scene_split.items() for s in scenes}
+
+    def pair_id(frame: str) -> str:
+        safe = re.sub(r"[^A-Za-z0-9._-]", "_", frame)
+        return safe if safe[0].isalnum() else "f" + safe
+
+    done = {f.name for f in frames if (out / "pairs" / pair_id(f.name) / "params.json").is_file()}
+    todo = [f for f in frames if f.name not in done]
+    failed: dict[str, str] = {}
+    written = 0
+    pending: list[tuple[Frame, PairParams, np.ndarray]] = []
+
+    def flush() -> None:
+        nonlocal written
+        groups: dict[tuple[int, int], list[tuple[Frame, PairParams, np.ndarray]]] = {}
+        for item in pending:
+            groups.setdefault(item[0].image.shape[:2], []).append(item)
+        for items in groups.values():
+            batch = _make_batch(items, cfg.device)
+            with torch.no_grad():
+                left, right = sim(batch)
+            for k, (frame, params, coc) in enumerate(items):
+                write_pair(out, params, sharp=frame.image, left=np.clip(left[k].permute(1, 2, 0).cpu().numpy(), 0, 1),
+                           right=np.clip(right[k].permute(1, 2, 0).cpu().numpy(), 0, 1), depth_mm=frame.depth_mm,
+                           coc_px=np.nan_to_num(coc, nan=0.0), overwrite=True)
+                written += 1
+        pending.clear()
+        _write_index(out, frames, split_of, pair_id, cfg)
+
+    for folder in progress(todo, desc="synthesize", unit="frame"):
+        try:
+            frame = load_frame(folder, cfg.encoding, cfg.depth_scale)
+            rng = _frame_rng(cfg.seed, frame.name)
+            if cfg.focus_mm is not None:
+                focus, point = float(cfg.focus_mm), (frame.image.shape[1] / 2, frame.image.shape[0] / 2)
+            else:
+                focus, point = random_focus(frame.depth_mm, rng)
+            n = float(cfg.f_numbers[0] if len(cfg.f_numbers) == 1 else cfg.f_numbers[int(rng.integers(len(cfg.f_numbers)))])
+            H, W = frame.depth_mm.shape
+            pitch, f_thin, scale = optics_for_frame(frame.depth_mm, frame.fx_px, focus, W, cfg)
+            if not focus > f_thin:
+                raise BadInputError(f"focus distance {focus:.1f} mm is not beyond the focal length {f_thin:.1f} mm", where=folder)
+            coc = coc_diameter_px(frame.depth_mm, focus, f_thin, n, pitch).astype(np.float32)
+            params = PairParams(
+                pair_id=pair_id(frame.name), scene=frame.name, camera="synth", f_number=n, focus_distance_mm=focus,
+                focal_length_mm=f_thin, pixel_pitch_mm=pitch, focus_point_px=point, image_size=(W, H),
+                extra={"synthetic": True, "simulator": cfg.simulator, "source_frame": frame.name,
+                       "pinhole_fx_px": frame.fx_px, "sensor_scale": scale, **cfg.extra},
+            )
+            pending.append((frame, params, coc))
+        except BadInputError as exc:
+            failed[folder.name] = exc.one_line()
+            logger.warning("skipping frame %s: %s", folder.name, exc.one_line())
+            continue
+        if len(pending) >= cfg.batch_size:
+            flush()
+    flush()
+    summary = {"written": written, "skipped": len(done), "failed": failed,
+               "pairs": len(DatasetReader(out).ids())}
+    if failed:
+        raise PartialFailureError(
+            f"{len(failed)} of {len(frames)} frame(s) failed (first: {next(iter(failed.values()))}); the rest were written",
+            where=src,
+        )
+    return summary
+
+
+def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: str) -> DPBatch:
+    def t(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a))
+
+    sharp = torch.stack([t(f.image.transpose(2, 0, 1)) for f, _, _ in items])
+    valid = torch.stack([t(f.depth_mm > 0)[None] for f, _, _ in items])
+    coc = torch.stack([t(np.nan_to_num(c, nan=0.0).astype(np.float32))[None] for _, _, c in items])
+    depth = torch.stack([t(f.depth_mm)[None] for f, _, _ in items])
+    P = [p for _, p, _ in items]
+    f32 = torch.float32
+    return DPBatch(
+        sharp=sharp, coc_px=coc, depth_mm=depth, valid=valid,
+        f_number=torch.tensor([p.f_number for p in P], dtype=f32),
+        focus_distance_mm=torch.tensor([p.focus_distance_mm for p in P], dtype=f32),
+        focal_length_mm=torch.tensor([p.focal_length_mm for p in P], dtype=f32),
+        pixel_pitch_mm=torch.tensor([p.pixel_pitch_mm for p in P], dtype=f32),
+        focus_point_px=torch.tensor([p.focus_point_px for p in P], dtype=f32),
+        pair_ids=tuple(p.pair_id for p in P),
+    ).to(device)
+
+
+def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], pair_id: Any, cfg: SynthConfig) -> None:
+    splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
+    for f in frames:
+        pid = pair_id(f.name)
+        if (out / "pairs" / pid / "params.json").is_file():
+            splits[split_of[f.name]].append(pid)
+    write_index(out, splits, source="dp5k synthesize", simulator=cfg.simulator,
+                synth_config=json.loads(json.dumps({k: v for k, v in cfg.__dict__.items() if k != "extra"}, default=str)))

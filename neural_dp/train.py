@@ -1,0 +1,271 @@
+"""Train the Neural DP Simulator (Sec. 5.1): Eq. (8)/(9) loss, Adam + cosine annealing, best-by-val-SSIM.
+
+One function, :func:`train`, runs in a single process (CPU by default, CUDA when present) or as one of
+many processes under ``torchrun`` (DistributedDataParallel; see :mod:`neural_dp.distributed`). It writes
+into ``out_dir``:
+
+* ``config.json``: the resolved configuration;
+* ``last.pt``: everything needed to resume, rewritten atomically after every epoch;
+* ``best.pt``: the weights with the highest validation masked SSIM so far (what ``dp5k evaluate`` uses);
+* ``history.json``: per-epoch loss, validation metrics, learning rate and throughput.
+
+Running the same command again resumes from ``last.pt`` (epoch granularity; the data and dropout of
+every epoch are seeded by ``(seed, epoch, rank)``, so a resumed run reproduces an uninterrupted one).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, DistributedSampler
+
+from dp5k_common.errors import BadInputError, DatasetFormatError, StageError
+from dp5k_common.io import write_json_atomic
+from dp5k_common.progress import progress
+
+from . import distributed as D
+from .checkpoint import load_checkpoint, save_checkpoint
+from .config import TrainConfig, from_dict
+from .data import CropSpec, DPPairDataset, collate_dp
+from .losses import dp_loss
+from .metrics import view_metrics
+from .simulators.neural import NeuralDPSimulator, model_inputs
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainResult:
+    """What a run produced."""
+
+    out_dir: Path
+    best_val_ssim: float
+    best_epoch: int
+    epochs_done: int
+    steps: int
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def loss_mask(valid: torch.Tensor, border_px: int) -> torch.Tensor:
+    """Valid depth minus a ``border_px`` frame (the kernels' replicate padding is not data). (B,1,H,W) float."""
+    m = valid.float()
+    if border_px > 0:
+        m[..., :border_px, :] = 0
+        m[..., -border_px:, :] = 0
+        m[..., :, :border_px] = 0
+        m[..., :, -border_px:] = 0
+    return m
+
+
+@torch.no_grad()
+def init_view_gain(sim: NeuralDPSimulator, ds: DPPairDataset, max_pairs: int = 16) -> torch.Tensor:
+    """Set the per-view, per-channel gains to the data's mean view / sharp ratio over valid pixels. Returns (2, 3)."""
+    sums = torch.zeros(3, 3, dtype=torch.float64)
+    for pid in ds.ids[:max_pairs]:
+        pair = ds.pair(pid)
+        v = pair.valid[..., None]
+        sums[0] += torch.from_numpy((pair.sharp * v).sum((0, 1)).astype(np.float64))
+        sums[1] += torch.from_numpy((pair.left * v).sum((0, 1)).astype(np.float64))
+        sums[2] += torch.from_numpy((pair.right * v).sum((0, 1)).astype(np.float64))
+    gain = (sums[1:] / sums[0].clamp_min(1e-12)).clamp(0.05, 2.0).float()
+    sim.net.view_gain.copy_(gain)
+    return gain
+
+
+@torch.no_grad()
+def validate(sim: NeuralDPSimulator, ds: DPPairDataset, info: D.DistInfo, max_pairs: int = 0) -> dict[str, float]:
+    """Masked SSIM / PSNR / MAE (mean of L and R, mean over pairs) on full-resolution pairs.
+
+    Pairs are sharded over processes without padding; sums and counts are all-reduced, so every process
+    gets the same numbers.
+    """
+    was_training = sim.training
+    sim.eval()
+    n = len(ds.ids) if max_pairs <= 0 else min(max_pairs, len(ds.ids))
+    acc = torch.zeros(4, dtype=torch.float64, device=info.device)
+    for i in range(info.rank, n, info.world_size):
+        batch = collate_dp([ds[i]]).to(info.device)
+        left, right = sim(batch)
+        m = view_metrics(left.float(), right.float(), batch.left, batch.right, batch.valid)
+        acc += torch.tensor([float(m["ssim"][0]), float(m["psnr"][0]), float(m["mae"][0]), 1.0],
+                            dtype=torch.float64, device=info.device)
+    acc = D.all_reduce_sum(acc, info)
+    sim.train(was_training)
+    count = max(float(acc[3]), 1.0)
+    return {"ssim": float(acc[0]) / count, "psnr": float(acc[1]) / count, "mae": float(acc[2]) / count}
+
+
+def _seed_all(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % (2**32))
+
+
+def _open(root: Path, split: str, crop: CropSpec, seed: int, length: int = 0) -> DPPairDataset | None:
+    try:
+        return DPPairDataset(root, split, crop, seed=seed, length=length)
+    except DatasetFormatError as exc:
+        if "is empty" in exc.message:
+            return None
+        raise
+
+
+def train(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], cfg: TrainConfig, *, resume: bool = True,
+          on_epoch_end: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
+    """Train (or resume training) the Neural DP Simulator on ``dataset``'s train split.
+
+    Args:
+        dataset: a format-v1 dataset (train and val splits are used).
+        out_dir: where checkpoints, config and history go (created).
+        cfg: the run's configuration.
+        resume: continue from ``out_dir/last.pt`` when it exists.
+        on_epoch_end: called as ``on_epoch_end(epoch, record)`` after each epoch's checkpoint is written.
+
+    Returns:
+        A :class:`TrainResult`.
+
+    Raises:
+        BadInputError / DatasetFormatError: unusable dataset or config.
+        StageError: the loss became NaN.
+    """
+    info = D.setup(cfg.device)
+    try:
+        return _train(Path(dataset), Path(out_dir), cfg, info, resume, on_epoch_end)
+    finally:
+        D.teardown()
+
+
+def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bool,
+           on_epoch_end: Callable[[int, dict[str, float]], None] | None) -> TrainResult:
+    device = info.device
+    out.mkdir(parents=True, exist_ok=True)
+    crop = CropSpec(cfg.data.crop_px, cfg.data.min_valid_fraction, vflip=cfg.data.vflip)
+    train_ds = _open(root, "train", crop, cfg.seed, cfg.data.samples_per_epoch)
+    if train_ds is None:
+        raise DatasetFormatError("the train split is empty; nothing to train on", where=root / "dataset.json")
+    val_ds = _open(root, "val", CropSpec(), cfg.seed)
+    if val_ds is None:
+        logger.warning("%s: empty val split; selecting the checkpoint on the train split", root)
+        val_ds = DPPairDataset(root, "train", CropSpec(), seed=cfg.seed)
+
+    _seed_all(cfg.seed)
+    sim = NeuralDPSimulator(cfg.model).to(device)
+    opt = torch.optim.Adam(sim.net.parameters(), lr=cfg.optim.lr, betas=(0.9, 0.999))
+    sampler = DistributedSampler(train_ds, num_replicas=info.world_size, rank=info.rank, shuffle=True,
+                                 seed=cfg.seed, drop_last=False)
+    loader = DataLoader(train_ds, batch_size=cfg.data.batch_size, sampler=sampler, num_workers=cfg.data.num_workers,
+                        collate_fn=collate_dp)
+    steps_per_epoch = len(loader)
+    total_steps = max(1, cfg.optim.epochs * steps_per_epoch)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps, eta_min=cfg.optim.lr_min)
+
+    start_epoch, step = 0, 0
+    best_ssim, best_epoch = -math.inf, -1
+    history: list[dict[str, float]] = []
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    if resume and last_path.is_file():
+        state = load_checkpoint(last_path, map_location=device)
+        saved_model = state.get("model_config")
+        if saved_model != asdict(cfg.model):
+            raise BadInputError(
+                "the checkpoint's model config differs from this run's; use another --out or the same config",
+                where=last_path,
+            )
+        sim.net.load_state_dict(state["model"])
+        opt.load_state_dict(state["optim"])
+        sched.load_state_dict(state["sched"])
+        sched.T_max = total_steps  # a resumed run may extend the schedule (more epochs)
+        start_epoch, step = int(state["epoch"]), int(state["step"])
+        best_ssim, best_epoch = float(state["best_val_ssim"]), int(state["best_epoch"])
+        history = list(state.get("history", []))
+        if info.is_main:
+            logger.info("resuming from %s at epoch %d (step %d)", last_path, start_epoch, step)
+    else:
+        init_view_gain(sim, train_ds)
+    if info.is_main:
+        write_json_atomic(out / "config.json", cfg.to_dict())
+
+    net: torch.nn.Module = sim.net
+    if info.enabled:
+        net = DistributedDataParallel(sim.net, device_ids=[device.index] if device.type == "cuda" else None)
+    border = cfg.model.kernel_size // 2
+    use_amp = cfg.optim.amp and device.type == "cuda"
+    bar = progress(total=cfg.optim.epochs * steps_per_epoch, initial=step, desc="train", unit="step") if info.is_main else None
+    try:
+        for epoch in range(start_epoch, cfg.optim.epochs):
+            train_ds.set_epoch(epoch)
+            sampler.set_epoch(epoch)
+            torch.manual_seed(cfg.seed * 1_000_003 + epoch * 7919 + info.rank)
+            sim.train()
+            t0 = time.perf_counter()
+            loss_sum = torch.zeros(2, dtype=torch.float64, device=device)
+            samples = 0
+            for batch in loader:
+                batch = batch.to(device)
+                inputs = model_inputs(batch, cfg.model.coc_scale_px)
+                with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=use_amp):
+                    left, right = net(batch.sharp, inputs)
+                mask = loss_mask(batch.valid, border)
+                loss = dp_loss(left.float(), right.float(), batch.left, batch.right, mask, cfg.optim.grad_weight)
+                if not torch.isfinite(loss):
+                    raise StageError(f"loss is {float(loss)} at step {step} (lower --lr?)", where="train")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.optim.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(sim.net.parameters(), cfg.optim.grad_clip)
+                opt.step()
+                sched.step()
+                step += 1
+                samples += batch.sharp.shape[0]
+                loss_sum += torch.tensor([float(loss.detach()) * batch.sharp.shape[0], batch.sharp.shape[0]],
+                                         dtype=torch.float64, device=device)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(epoch=epoch + 1, loss=f"{float(loss.detach()):.4f}", best_ssim=f"{max(best_ssim, 0):.4f}")
+            loss_sum = D.all_reduce_sum(loss_sum, info)
+            elapsed = time.perf_counter() - t0
+            val = validate(sim, val_ds, info, cfg.data.val_pairs)
+            record = {
+                "epoch": epoch + 1, "step": step, "loss": float(loss_sum[0] / loss_sum[1].clamp_min(1)),
+                "val_ssim": val["ssim"], "val_psnr": val["psnr"], "val_mae": val["mae"],
+                "lr": float(sched.get_last_lr()[0]),
+                "train_samples_per_s": float(samples * info.world_size / max(elapsed, 1e-9)),
+            }
+            history.append(record)
+            improved = val["ssim"] > best_ssim
+            if improved:
+                best_ssim, best_epoch = val["ssim"], epoch + 1
+            state = {
+                "model": sim.net.state_dict(), "model_config": asdict(cfg.model), "config": cfg.to_dict(),
+                "optim": opt.state_dict(), "sched": sched.state_dict(), "epoch": epoch + 1, "step": step,
+                "best_val_ssim": float(best_ssim), "best_epoch": int(best_epoch), "history": history,
+            }
+            if info.is_main:
+                if improved:
+                    save_checkpoint(best_path, state)
+                save_checkpoint(last_path, state)
+                write_json_atomic(out / "history.json", history)
+                logger.info("epoch %d: loss %.5f, val SSIM %.4f, PSNR %.2f dB%s", epoch + 1, record["loss"],
+                            val["ssim"], val["psnr"], " (best)" if improved else "")
+            D.barrier(info)
+            if on_epoch_end is not None:
+                on_epoch_end(epoch + 1, record)
+    finally:
+        if bar is not None:
+            bar.close()
+    return TrainResult(out, float(best_ssim), int(best_epoch), len(history), step, history)
+
+
+def config_from_checkpoint(state: dict[str, Any]) -> TrainConfig:
+    """The :class:`TrainConfig` a checkpoint was trained with."""
+    return from_dict(state.get("config", {}))
+
