@@ -44,14 +44,33 @@ class GrayCodeConfig:
         proj_width, proj_height: projector resolution at scale 1 (pixels).
         white_thr: least |pos - neg| for a reliable bit, fraction of full scale (OpenCV: 5/255).
         black_thr: least |white - black| for a lit (not shadowed) pixel, fraction of full scale (OpenCV: 40/255).
+        rel_thr: least |pos - neg| as a fraction of the pixel's own |white - black| (0 = off; like
+            3DUNDERWORLD's auto-contrast, it makes the bit test independent of albedo).
         n_scales: number of projector scales 1, 1/2, ... decoded (paper: 4).
+        max_weak_bits: weak bits tolerated among a code's leading bits (per axis). A pixel that straddles a stripe
+            edge has exactly one weak bit, and since neighbouring Gray codes differ in one bit, either reading of
+            it gives one of the two codes the pixel really sees; 0 = OpenCV's rule (any weak bit rejects).
     """
 
     proj_width: int = 1920
     proj_height: int = 1200
     white_thr: float = 5.0 / 255.0
     black_thr: float = 40.0 / 255.0
+    rel_thr: float = 0.0
     n_scales: int = 4
+    max_weak_bits: int = 1
+
+    @classmethod
+    def for_linear_raw(cls, proj_width: int = 1920, proj_height: int = 1200, max_weak_bits: int = 1) -> GrayCodeConfig:
+        """Thresholds for linear 14-bit raw (fractions of white - black = 15871 counts).
+
+        The 8-bit defaults (5 and 40 of 255) assume gamma-encoded, well-exposed images; in linear raw a
+        projector that adds a few hundred counts over the ambient light is normal (the f/22 structured-light
+        frames), so the thresholds are set from the sensor noise instead: shadow 0.8 % (127 counts, about
+        12 sigma of a white-black difference at that level), bit 0.25 % (40 counts, about 4 sigma) and at least
+        10 % of the pixel's own white-black contrast.
+        """
+        return cls(proj_width, proj_height, white_thr=0.0025, black_thr=0.008, rel_thr=0.10, max_weak_bits=max_weak_bits)
 
 
 @dataclass
@@ -61,7 +80,7 @@ class GrayDecode:
     Attributes:
         col, row: (H, W) int32 binary projector column/row codes at scale 1 (only the leading reliable bits
             are meaningful).
-        col_bits, row_bits: (H, W) uint8 number of leading reliable bits.
+        col_bits, row_bits: (H, W) uint8 number of leading bits with at most ``max_weak_bits`` weak ones.
         lit: (H, W) bool, |white - black| above the shadow threshold.
         cfg: the settings used.
     """
@@ -125,14 +144,15 @@ def decode_graycode(
                             f"projector, got {len(patterns)}")
     w = _as_float(white)
     b = _as_float(black)
-    lit = np.abs(w - b) > cfg.black_thr * full_scale
-    thr = np.float32(cfg.white_thr * full_scale)
+    contrast = np.abs(w - b)
+    lit = contrast > cfg.black_thr * full_scale
+    thr = np.maximum(np.float32(cfg.white_thr * full_scale), np.float32(cfg.rel_thr) * contrast)
     out = []
     offset = 0
     for nb in (n_bits(cfg.proj_width), n_bits(cfg.proj_height)):
         code = np.zeros(w.shape, np.int32)
         prev = np.zeros(w.shape, np.bool_)
-        good = np.ones(w.shape, np.bool_)
+        weak = np.zeros(w.shape, np.uint8)
         count = np.zeros(w.shape, np.uint8)
         for k in range(nb):
             pos = _as_float(load(offset + 2 * k))
@@ -140,8 +160,8 @@ def decode_graycode(
             if pos.shape != w.shape or neg.shape != w.shape:
                 raise BadInputError(f"pattern {offset + 2 * k} has shape {pos.shape}, expected {w.shape}")
             diff = pos - neg
-            good &= np.abs(diff) >= thr
-            count += good
+            weak += np.abs(diff) < thr
+            count += weak <= cfg.max_weak_bits
             prev ^= diff > 0  # Gray -> binary: b_k = b_{k-1} xor g_k
             code = (code << 1) | prev
         out.append((code, count))

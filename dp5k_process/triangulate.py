@@ -38,14 +38,16 @@ def footprint_px(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[
     return float(np.sqrt(nv / max(1, codes.size)))
 
 
-def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: float) -> NDArray[np.float32]:
+def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: float, min_support: float = 0.3
+                ) -> NDArray[np.float32]:
     r"""Valid-only Gaussian mean of an integer code (normalised convolution), a sub-pixel projector coordinate.
 
     .. math:: \hat c = \frac{G_\sigma * (c\,m)}{G_\sigma * m}
 
     A Gaussian with sigma about half the stripe footprint suppresses the staircase ripple (its transfer at the
     stripe frequency 1/p is exp(-2 pi^2 sigma^2 / p^2)); the integer code of pixel centres gives the projector
-    pixel-centre coordinate, so the smoothed code is unbiased on smooth surfaces. NaN where no valid neighbour.
+    pixel-centre coordinate, so the smoothed code is unbiased on smooth surfaces. Defined (not NaN) where the
+    valid pixels carry at least ``min_support`` of the kernel's weight, which also bridges isolated invalid pixels.
     """
     c = np.where(valid, code, 0).astype(np.float32)
     m = valid.astype(np.float32)
@@ -53,7 +55,7 @@ def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: flo
     den = cv2.GaussianBlur(m, (0, 0), sigma_px, borderType=cv2.BORDER_CONSTANT)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
-    out[~valid] = np.nan
+    out[~(den >= min_support)] = np.nan
     return out
 
 
@@ -150,6 +152,7 @@ class CodeView:
         centroids: (Hp, Wp, 2) mean pixel position per projector pixel.
         grads: (H, W, 4) du/dx, du/dy, dv/dx, dv/dy of the smoothed codes.
         footprint_px: camera pixels per projector pixel (side).
+        scale: the projector scale exponent s (codes are ``code >> s``).
     """
 
     u: NDArray[np.float32]
@@ -158,11 +161,24 @@ class CodeView:
     centroids: NDArray[np.float32]
     grads: NDArray[np.float32]
     footprint_px: float
+    scale: int = 0
+
+    def to_full(self, u: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Smoothed scale-s code -> projector coordinate at scale 1 (pixel centres at integers).
+
+        The mean of ``x >> s`` over a region is ``x / 2^s - (2^s - 1) / 2^(s+1)``."""
+        k = float(1 << self.scale)
+        return (u + (k - 1) / (2 * k)) * k
+
+    def from_full(self, x: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Inverse of :meth:`to_full`."""
+        k = float(1 << self.scale)
+        return x / k - (k - 1) / (2 * k)
 
 
 def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_],
-              proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig()) -> CodeView:
-    """Smooth codes, their gradients and bucket centroids of one camera at one scale."""
+              proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig(), scale: int = 0) -> CodeView:
+    """Smooth codes, their gradients and bucket centroids of one camera at projector scale ``2^-scale``."""
     fp = footprint_px(col, row, valid, proj_size[0])
     sigma = max(0.7, cfg.sigma_factor * fp)
     u = smooth_code(col, valid, sigma)
@@ -172,24 +188,30 @@ def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.
         z = np.nan_to_num(c)
         g.append(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
         g.append(cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
-    return CodeView(u, v, valid, bucket_centroids_px(col, row, valid, proj_size), np.stack(g, -1), fp)
+    return CodeView(u, v, valid, bucket_centroids_px(col, row, valid, proj_size), np.stack(g, -1), fp, scale)
 
 
-def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig()
-                   ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig(),
+                   coarse: CodeView | None = None) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """For every valid reference pixel, the sub-pixel point of the other camera with the same projector code.
 
     Start at the other camera's bucket centroid sampled at the reference's smoothed code, then Newton steps on
-    the other camera's smoothed code maps: ``q <- q + J^-1 ((u, v)_ref - (u, v)_other(q))``.
+    the other camera's smoothed code maps: ``q <- q + J^-1 ((u, v)_ref - (u, v)_other(q))``. Where camera pixels
+    are larger than this scale's projector pixels the centroid map is sparse; ``coarse`` (the other camera at a
+    coarser scale, whose map is dense) then gives the start.
 
     Returns:
         q (H, W, 2) pixel coordinates in the other camera (NaN where unmatched), ok (H, W) bool.
     """
-    q, w = sample_centroids(other.centroids, ref.u, ref.v)
-    ok = ref.valid & np.isfinite(ref.u) & (w > 0) & np.isfinite(q[..., 0])
-    valid_o = np.where(other.valid & np.isfinite(other.u), 1.0, 0.0).astype(np.float32)
+    if coarse is None:
+        q, w = sample_centroids(other.centroids, ref.u, ref.v)
+    else:
+        q, w = sample_centroids(coarse.centroids, coarse.from_full(ref.to_full(ref.u)),
+                                coarse.from_full(ref.to_full(ref.v)))
+    ok = ref.valid & np.isfinite(ref.u) & np.isfinite(ref.v) & (w > 0) & np.isfinite(q[..., 0])
+    valid_o = np.where(np.isfinite(other.u) & np.isfinite(other.v), 1.0, 0.0).astype(np.float32)
     uo, vo = np.nan_to_num(other.u), np.nan_to_num(other.v)
-    step_max = 2.0 * max(1.0, other.footprint_px)
+    step_max = 2.0 * max(1.0, other.footprint_px, 0.0 if coarse is None else coarse.footprint_px)
     res = np.full(ref.u.shape, np.inf, np.float32)
     for _ in range(max(1, cfg.newton_iters)):
         qx = np.where(ok, q[..., 0], -10).astype(np.float32)
