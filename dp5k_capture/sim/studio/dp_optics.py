@@ -18,11 +18,17 @@ fronto-parallel plane is blurred with its exact Eq. 6 CoC. Layers are composited
 "over" operator on blurred alpha, separately for each aperture half, and normalized by the accumulated
 coverage:
 
-.. math::  O = \frac{\sum_k T_k (H_k * \alpha_k I)}{1 - T_K}, \qquad T_{k+1} = T_k (1 - H_k * \alpha_k)
+.. math::  O = \frac{\sum_k T_k (H_k * \alpha_k I)}{\sum_k T_k (H_k * \alpha_k)}, \qquad
+           T_k = \prod_{j < k,\ |b_j - b_k| > 1} (1 - H_j * \alpha_j)
+
+where a layer is not occluded by the layer of the adjacent CoC bin ``b`` just before it (that is the
+same continuous surface cut in two, and occluding it would draw seams);
 
 so a blurred foreground spills over the background but a blurred background never spills over a sharp
-foreground. Layers whose blur radius exceeds 4 px are blurred at a 2^k-times reduced resolution (their
-content is low-pass anyway), which keeps a 1680 x 1120 pair within seconds. In regions without occlusion
+foreground. Layers whose blur radius exceeds 16 px are blurred at a 2^k-times reduced resolution through
+a Gaussian pyramid (radius 8..16 px there; pyrDown/pyrUp keep every feature's centroid, so DP disparity
+stays exact and the added variance is under 2 % of the disc's), which keeps a 1680 x 1120 pair within
+seconds. In regions without occlusion
 ``left + right`` equals the full-aperture render exactly (Eq. 2); at occlusion edges the two halves are
 composited separately (each sees its own occlusion), which the full-aperture composite approximates.
 
@@ -56,7 +62,7 @@ _DISC_XY = np.stack([_DISC_R * np.cos(_i * _GOLDEN), _DISC_R * np.sin(_i * _GOLD
 SMALL_STEP_PX = 0.5
 SMALL_LIMIT_PX = 4.0
 GEOM_STEP = 0.12
-LOWRES_RADIUS_PX = 4.0
+LOWRES_RADIUS_PX = 8.0
 
 
 @dataclass(frozen=True)
@@ -172,6 +178,28 @@ def _conv(img: F32, psf: F32) -> F32:
     return cv2.filter2D(img, cv2.CV_32F, psf[::-1, ::-1].copy(), borderType=cv2.BORDER_CONSTANT)
 
 
+def _pyr_down(a: F32, s: int) -> F32:
+    """Gaussian-pyramid reduction by ``s`` (a power of 2): centroid-preserving (binomial 5-tap), sizes must divide."""
+    while s > 1:
+        a = cv2.pyrDown(a, dstsize=(a.shape[1] // 2, a.shape[0] // 2))
+        s //= 2
+    return a
+
+
+def _pyr_up(a: F32, s: int) -> F32:
+    """Gaussian-pyramid expansion by ``s`` (inverse alignment of :func:`_pyr_down`)."""
+    while s > 1:
+        a = cv2.pyrUp(a, dstsize=(a.shape[1] * 2, a.shape[0] * 2))
+        s //= 2
+    return a
+
+
+def _commit(T: F32, pend: tuple) -> None:
+    """Multiply a layer's (1 - blurred alpha) into the transmittance ``T`` over its box."""
+    _, y0, y1, x0, x1, factor = pend
+    T[y0:y1, x0:x1] *= factor
+
+
 def _layer_index(key: NDArray[np.floating]) -> NDArray[np.int32]:
     a = np.abs(key)
     n_small = SMALL_LIMIT_PX / SMALL_STEP_PX
@@ -224,7 +252,14 @@ def render_dp(
     if np.shape(depth_mm) != (H, W):
         raise BadInputError(f"depth shape {np.shape(depth_mm)} differs from image {(H, W)}")
     z = np.asarray(depth_mm, dtype=np.float64)
-    coc = coc_channels_px(z, lens, eff)
+    coc_out = coc_channels_px(z, lens, eff)
+    # the camera sees beyond the frame: extend the scene by mirroring (so the border is not dark and
+    # every view is normalized alike), render, crop back
+    P = min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H - 1, W - 1)
+    img = np.pad(img, ((P, P), (P, P), (0, 0)), mode="symmetric")
+    z = np.pad(z, P, mode="symmetric")
+    coc = np.pad(coc_out, ((P, P), (P, P), (0, 0)), mode="symmetric")
+    H, W = img.shape[:2]
     key = coc[:, :, 1]
     lid = _layer_index(key)
     zsort = np.where(np.isfinite(z) & (z > 0), z, lens.focus_distance_mm)
@@ -234,8 +269,9 @@ def render_dp(
     cmean = np.stack([np.bincount(inverse.ravel(), weights=coc[:, :, ch].ravel().astype(np.float64)) / counts for ch in range(3)], 1)
     halves = ["L", "R"] + (["F"] if full else [])
     acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
+    cov_acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
     T = {h: np.ones((H, W, 3), np.float32) for h in halves}
-    rows_any = None
+    pending: dict[str, tuple] = {}
     for li in np.argsort(zmean, kind="stable"):
         mask = inverse == li
         rows = np.nonzero(mask.any(axis=1))[0]
@@ -257,8 +293,7 @@ def render_dp(
             alpha_p[:h, :w] = alpha
             color_p = np.zeros((hp, wp, 3), np.float32)
             color_p[:h, :w] = color
-            alpha_l = cv2.resize(alpha_p, (wp // s, hp // s), interpolation=cv2.INTER_AREA)
-            color_l = cv2.resize(color_p, (wp // s, hp // s), interpolation=cv2.INTER_AREA)
+            alpha_l, color_l = _pyr_down(alpha_p, s), _pyr_down(color_p, s)
         else:
             alpha_l, color_l = alpha, color
         kern = [left_kernel(c3[ch] / s, eff) for ch in range(3)]
@@ -278,22 +313,30 @@ def render_dp(
                 ba = np.dstack([_conv(alpha_l, ks[ch]) for ch in range(3)])
                 bc = np.dstack([_conv(np.ascontiguousarray(color_l[:, :, ch]), ks[ch]) for ch in range(3)])
             if s > 1:
-                ba = cv2.resize(ba, (wp, hp), interpolation=cv2.INTER_LINEAR)[:h, :w]
-                bc = cv2.resize(bc, (wp, hp), interpolation=cv2.INTER_LINEAR)[:h, :w]
+                ba = _pyr_up(ba, s)[:h, :w]
+                bc = _pyr_up(bc, s)[:h, :w]
             np.clip(ba, 0.0, 1.0, out=ba)
+            # the neighbouring depth bin is the same surface, not an occluder: its alpha joins the
+            # transmittance one layer late (a continuous surface cut into bins shows no seams)
+            pend = pending.get(hname)
+            if pend is not None and abs(pend[0] - ids[li]) > 1:
+                _commit(T[hname], pend)
+                pend = None
             Tv = T[hname][y0:y1, x0:x1]
             acc[hname][y0:y1, x0:x1] += Tv * bc
-            Tv *= 1.0 - ba
-    del rows_any
+            cov_acc[hname][y0:y1, x0:x1] += Tv * ba
+            if pend is not None:
+                _commit(T[hname], pend)
+            pending[hname] = (ids[li], y0, y1, x0, x1, 1.0 - ba)
     out = {}
+    crop = (slice(P, H - P), slice(P, W - P))
     for hname in halves:
-        cov = 1.0 - T[hname]
-        out[hname] = acc[hname] / np.maximum(cov, 1e-6)
+        out[hname] = acc[hname][crop] / np.maximum(cov_acc[hname][crop], 1e-6)
     left = 0.5 * out["L"]
     right = 0.5 * out["R"]
     if view_effects:
         left, right = apply_view_effects(left, right, eff)
-    return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), coc)
+    return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), coc_out)
 
 
 def apply_view_effects(left: F32, right: F32, effects: EffectSet) -> tuple[F32, F32]:

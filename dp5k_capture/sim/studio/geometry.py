@@ -3,7 +3,7 @@
 Each primitive answers two questions for a batch of rays, both vectorized over N rays:
 
 * ``intersect(o, d) -> t``: (N,) ray parameter of the nearest hit with ``t > T_MIN`` (``inf`` = miss),
-  for rays ``o + t d`` with (N, 3) origins and (N, 3) unit directions (so ``t`` is metres along the ray);
+  for rays ``o + t d`` from one (3,) origin with (N, 3) unit directions (so ``t`` is metres along the ray);
 * ``surface(p) -> (u_m, v_m, n)``: surface coordinates in metres (for the texture) and the unit normal
   at (N, 3) points on the primitive.
 """
@@ -49,13 +49,13 @@ class Quad:
 
     def intersect(self, o: Arr, d: Arr) -> Arr:
         u, v, n = self._frame()
-        denom = d @ n
+        q = np.asarray(o, float) - np.asarray(self.origin)
+        dn = d @ n
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((np.asarray(self.origin) - o) @ n) / denom
-        p = o + t[:, None] * d - np.asarray(self.origin)
-        a = p @ u
-        b = p @ v
-        ok = (np.abs(denom) > 1e-12) & (t > T_MIN) & (a >= 0) & (a <= self.size_m[0]) & (b >= 0) & (b <= self.size_m[1])
+            t = -(q @ n) / dn
+        a = q @ u + t * (d @ u)
+        b = q @ v + t * (d @ v)
+        ok = (np.abs(dn) > 1e-12) & (t > T_MIN) & (a >= 0) & (a <= self.size_m[0]) & (b >= 0) & (b <= self.size_m[1])
         return np.where(ok, t, np.inf)
 
     def surface(self, p: Arr) -> tuple[Arr, Arr, Arr]:
@@ -83,7 +83,7 @@ class Box:
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for k in range(3):
                 ax = R[:, k]
-                ok = (o - c) @ ax if o.ndim == 2 else np.full(d.shape[0], float((o - c) @ ax))
+                ok = float((np.asarray(o, float) - c) @ ax)
                 dk = d @ ax
                 inv = 1.0 / np.where(np.abs(dk) < 1e-15, 1e-15, dk)
                 t1 = (-h[k] - ok) * inv
@@ -119,9 +119,9 @@ class Sphere:
     name: str = "sphere"
 
     def intersect(self, o: Arr, d: Arr) -> Arr:
-        oc = o - np.asarray(self.center)
-        b = np.einsum("ij,ij->i", oc, d)
-        c = np.einsum("ij,ij->i", oc, oc) - self.radius_m**2
+        oc = np.asarray(o, float) - np.asarray(self.center)
+        b = d @ oc
+        c = float(oc @ oc) - self.radius_m**2
         disc = b * b - c
         sq = np.sqrt(np.maximum(disc, 0.0))
         t0 = -b - sq
@@ -149,7 +149,8 @@ class Cylinder:
 
     def intersect(self, o: Arr, d: Arr) -> Arr:
         base = np.asarray(self.base)
-        ox, oz = o[:, 0] - base[0], o[:, 2] - base[2]
+        o = np.asarray(o, float)
+        ox, oz = o[0] - base[0], o[2] - base[2]
         dx, dz = d[:, 0], d[:, 2]
         a = dx * dx + dz * dz
         b = ox * dx + oz * dz
@@ -158,14 +159,14 @@ class Cylinder:
         sq = np.sqrt(np.maximum(disc, 0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
             ts = np.stack([(-b - sq) / a, (-b + sq) / a], axis=1)
-        hgt = -(o[:, 1:2] + ts * d[:, 1:2] - base[1])  # height above the base
+        hgt = -(o[1] + ts * d[:, 1:2] - base[1])  # height above the base
         ok_side = (disc >= 0)[:, None] & (a > 1e-15)[:, None] & (ts > T_MIN) & (hgt >= 0) & (hgt <= self.height_m)
         t_side = np.where(ok_side, ts, np.inf).min(axis=1)
         caps = []
         for level in (0.0, self.height_m):
             y = base[1] - level
             with np.errstate(divide="ignore", invalid="ignore"):
-                tc = (y - o[:, 1]) / d[:, 1]
+                tc = (y - o[1]) / d[:, 1]
             px = ox + tc * dx
             pz = oz + tc * dz
             okc = (np.abs(d[:, 1]) > 1e-15) & (tc > T_MIN) & (px * px + pz * pz <= self.radius_m**2)
@@ -193,11 +194,11 @@ Primitive = Quad | Box | Sphere | Cylinder
 
 
 def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArray[np.int32]]:
-    """Nearest hit of each ray over all primitives.
+    """Nearest hit of each ray over all primitives (all rays leave one point: a camera or the projector).
 
     Args:
         prims: the primitives.
-        o: (N, 3) or (3,) ray origins (m).
+        o: (3,) the rays' common origin (m).
         d: (N, 3) unit ray directions.
         chunk: rays per batch (bounds memory).
 
@@ -206,7 +207,7 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
     """
     d = np.asarray(d, dtype=np.float64)
     N = d.shape[0]
-    o = np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
+    o = np.asarray(o, dtype=np.float64).reshape(3)
     t_best = np.full(N, np.inf)
     idx = np.full(N, -1, dtype=np.int32)
     for s in range(0, N, chunk):
@@ -214,7 +215,7 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
         tb = t_best[sl]
         ib = idx[sl]
         for k, prim in enumerate(prims):
-            t = prim.intersect(o[sl], d[sl])
+            t = prim.intersect(o, d[sl])
             better = t < tb
             tb[better] = t[better]
             ib[better] = k

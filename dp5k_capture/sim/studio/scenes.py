@@ -107,7 +107,7 @@ def _in_view(rng: np.random.Generator, z: float, margin: float = 0.7) -> tuple[f
 def _random_scene(seed: int) -> Scene:
     rng = np.random.default_rng(10007 + seed)
     prims: list = []
-    z_back = float(rng.uniform(3.5, 10.0))
+    z_back = float(np.exp(rng.uniform(np.log(2.5), np.log(9.0))))
     prims.append(_wall(z_back, float(rng.uniform(-30, 30)), random_texture(rng, 0.2), name="back_wall"))
     prims.append(_floor(random_texture(rng, 0.2)))
     if rng.random() < 0.5:
@@ -119,9 +119,9 @@ def _random_scene(seed: int) -> Scene:
     n_obj = int(rng.integers(2, 7))
     targets = []
     for k in range(n_obj):
-        z = float(np.exp(rng.uniform(np.log(0.3), np.log(4.0))))
+        z = float(np.exp(rng.uniform(np.log(0.26), np.log(0.8)))) if rng.random() < 0.25 else float(rng.uniform(0.8, min(4.0, z_back - 0.3)))
         x, y = _in_view(rng, z)
-        size = float(rng.uniform(0.04, 0.25) * min(z, 2.0) + 0.02)
+        size = float(rng.uniform(0.03, 0.12) * z + 0.005)
         tex = random_texture(rng)
         kind = rng.choice(["box", "sphere", "cylinder"])
         if kind == "box":
