@@ -32,13 +32,13 @@ def test_coarse_scales_survive_blur_and_16bit_input():
     cfg = GrayCodeConfig(256, 128, max_weak_bits=0)
     pats = opencv_patterns(256, 128)
     scale = 64.0  # 8-bit -> 14-bit-like linear counts, stored as uint16
-    blurred = [(cv2.GaussianBlur(p.astype(np.float32), (0, 0), 2.5) * scale).astype(np.uint16) for p in pats]
+    blurred = [(cv2.GaussianBlur(p.astype(np.float32), (0, 0), 6.0) * scale).astype(np.uint16) for p in pats]
     white = np.full((128, 256), int(255 * scale), np.uint16)
     black = np.zeros_like(white)
     dec = decode_graycode(blurred, white, black, 255.0 * scale, cfg)
     X, Y = np.meshgrid(np.arange(256), np.arange(128))
     frac = [dec.at_scale(s)[2].mean() for s in range(4)]
-    assert frac[0] < 0.5 and frac[3] > 0.9
+    assert frac[0] < 0.05 and frac[2] < 0.7 and frac[3] > 0.99
     assert frac == sorted(frac)
     col, row, valid = dec.at_scale(3)
     np.testing.assert_array_equal(col[valid], (X >> 3)[valid])
@@ -47,7 +47,7 @@ def test_coarse_scales_survive_blur_and_16bit_input():
     dec1 = decode_graycode(blurred, white, black, 255.0 * scale, GrayCodeConfig(256, 128, max_weak_bits=1))
     for s in (1, 2):
         col1, row1, valid1 = dec1.at_scale(s)
-        assert valid1.mean() > dec.at_scale(s)[2].mean() + 0.1
+        assert valid1.mean() > dec.at_scale(s)[2].mean() + 0.3
         assert np.abs(col1 - (X >> s))[valid1].max() <= 1 and np.abs(row1 - (Y >> s))[valid1].max() <= 1
 
 
