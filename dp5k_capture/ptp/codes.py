@@ -175,26 +175,33 @@ def av_code(f_number: float) -> int:
     return AV_CODES[key]
 
 
-def tv_code(shutter_s: float) -> int:
-    """Canon Tv code for an exposure time in seconds: ``0x38 + 8 log2(1/t)`` rounded to 1/3 stop steps.
+_TV_NOMINAL_S = (
+    30, 25, 20, 15, 13, 10, 8, 6, 5, 4, 3.2, 2.5, 2, 1.6, 1.3, 1, 0.8, 0.6, 0.5, 0.4, 0.3,
+    1 / 4, 1 / 5, 1 / 6, 1 / 8, 1 / 10, 1 / 13, 1 / 15, 1 / 20, 1 / 25, 1 / 30, 1 / 40, 1 / 50, 1 / 60, 1 / 80,
+    1 / 100, 1 / 125, 1 / 160, 1 / 200, 1 / 250, 1 / 320, 1 / 400, 1 / 500, 1 / 640, 1 / 800, 1 / 1000,
+    1 / 1250, 1 / 1600, 1 / 2000, 1 / 2500, 1 / 3200, 1 / 4000, 1 / 5000, 1 / 6400, 1 / 8000,
+)
+TV_CODES: dict[int, float] = dict(zip([c for c in range(0x10, 0xA1) if c % 8 in (0, 3, 5)], _TV_NOMINAL_S, strict=True))
+"""Canon Tv code -> marked exposure time (s), 1/3-stop series 30 s (0x10) .. 1/8000 s (0xA0); rule 0x38 + 8 log2(1/t)."""
 
-    >>> hex(tv_code(1 / 60)), hex(tv_code(1.0)), hex(tv_code(1 / 125))
-    ('0x68', '0x38', '0x70')
+
+def tv_code(shutter_s: float) -> int:
+    """Canon Tv code of the marked 1/3-stop time nearest to ``shutter_s`` (in stops).
+
+    >>> hex(tv_code(1 / 60)), hex(tv_code(1.0)), hex(tv_code(1 / 125)), hex(tv_code(1 / 500))
+    ('0x68', '0x38', '0x70', '0x80')
     """
     if not shutter_s > 0:
         raise ValueError(f"shutter time must be > 0 s, got {shutter_s}")
-    raw = 0x38 + 8.0 * math.log2(1.0 / shutter_s)
-    base = 8 * math.floor(raw / 8.0)
-    frac = raw - base
-    step = min((0, 3, 5, 8), key=lambda s: abs(s - frac))  # 1/3-stop codes: +0, +3, +5 (+8 = next stop)
-    code = int(base + step)
-    if not 0x10 <= code <= 0xA0:
+    if not 1 / 8000 / 1.2 <= shutter_s <= 30 * 1.2:
         raise ValueError(f"shutter time {shutter_s} s is outside 30 s .. 1/8000 s")
-    return code
+    return min(TV_CODES, key=lambda c: abs(math.log2(TV_CODES[c]) - math.log2(shutter_s)))
 
 
 def tv_seconds(code: int) -> float:
-    """Approximate exposure time (s) of a Canon Tv code (inverse of :func:`tv_code`)."""
+    """Marked exposure time (s) of a Canon Tv code (``0x68 -> 1/60``)."""
+    if code in TV_CODES:
+        return float(TV_CODES[code])
     return float(2.0 ** (-(code - 0x38) / 8.0))
 
 

@@ -32,6 +32,7 @@ from ..ptp.codes import (
     tv_seconds,
     AV_FROM_CODE,
     ISO_FROM_CODE,
+    TV_CODES,
 )
 from ..ptp.datasets import DeviceInfo, DevicePropDesc, ObjectInfo, StorageInfo, Writer
 
@@ -136,7 +137,7 @@ class SimulatedEOS:
         apertures = [c for f, c in sorted(AV_CODES.items()) if 1.8 <= f <= 22.0]
         self.avail: dict[int, list[int]] = {
             EosProp.APERTURE: apertures,
-            EosProp.SHUTTER_SPEED: [c for c in range(0x10, 0xA1) if c % 8 in (0, 3, 5)],  # 30 s .. 1/8000, 1/3 stops
+            EosProp.SHUTTER_SPEED: sorted(TV_CODES),  # 30 s .. 1/8000 s in 1/3 stops
             EosProp.ISO: sorted(ISO_CODES.values()),
             EosProp.CAPTURE_DESTINATION: [CAPTURE_DEST_CARD, CAPTURE_DEST_PC],
         }

@@ -1,0 +1,162 @@
+"""``dp5k capture``, ``dp5k devices`` and ``dp5k verify``."""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from pathlib import Path
+
+import click
+
+from dp5k_common.errors import BadInputError, DatasetFormatError
+
+log = logging.getLogger(__name__)
+
+
+def _sim_scene(scene: str) -> str | int:
+    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
+    from .sim.studio import PRESETS
+
+    if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
+        return scene
+    return zlib.crc32(scene.encode()) % 100000
+
+
+@click.command("capture")
+@click.option("--scene", required=True, help="Scene name (folder under --out): letters, digits, '.', '_', '-'.")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("raw"), show_default=True,
+              help="Raw session root; the scene goes to OUT/SCENE.")
+@click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="rig.toml (body serials, focus points, projector port, exposure plan).")
+@click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
+@click.option("--sim-scale", default="60", show_default=True, help="Studio scale for --sim (sensor downscale factor or small/medium/paper).")
+@click.option("--seed", default=0, show_default=True, help="Studio seed for --sim.")
+@click.option("--dry-run", is_flag=True, help="Print the plan (and what a resume would skip); touch nothing.")
+def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, dry_run: bool) -> None:
+    """Capture one scene: 10 DP + 2 sharp raws, 6 ChArUco, 92 structured-light images (2 bodies).
+
+    Resumes an interrupted scene; never overwrites a captured file; errors name the device and step.
+    """
+    from .capture import describe_plan
+    from .rig import RigConfig, load_rig
+    from .rawsession import FORMAT
+
+    rig = load_rig(rig_path) if rig_path else RigConfig()
+    if dry_run:
+        for line in describe_plan(rig, scene, out, "dng" if sim else "CR2"):
+            click.echo(line)
+        manifest = out / scene / "manifest.json"
+        if manifest.is_file():
+            from dp5k_common.io import read_json
+
+            m = read_json(manifest)
+            if m.get("format") == FORMAT:
+                state = "complete (would refuse)" if m.get("complete") else f"incomplete: {len(m.get('files', []))} files done, would resume"
+                click.echo(f"existing session: {state}")
+        if sim:
+            click.echo("simulated rig: bodies and raw sizes come from the studio at run time")
+        return
+    scale: float | str = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
+    if sim:
+        _capture_sim(scene, out, rig, scale, seed)
+    else:
+        _capture_real(scene, out, rig)
+
+
+def _capture_sim(scene: str, out: Path, rig, scale, seed: int) -> None:  # type: ignore[no-untyped-def]
+    from .capture import RigDevices, run_scene
+    from .devices import open_bodies
+    from .escvp21 import EpsonProjector, EscVp21Timing
+    from .rawsession import RawSessionWriter
+    from .sim.world import StudioOptics, make_sim_rig
+
+    sim = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(_sim_scene(scene), proj, scale, seed), seed=seed)
+    try:
+        writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True, "studio": {"scene": str(_sim_scene(scene)), "scale": scale, "seed": seed}})
+        projector = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.05))
+        bodies = open_bodies(sim.rig, backend=sim.backend)
+        devices = RigDevices(bodies, projector, sim.window, sim.optics)
+        try:
+            n = run_scene(sim.rig, devices, writer)
+        finally:
+            devices.close()
+        gt = writer.dir / "ground_truth"
+        if not gt.exists():
+            sim.optics.write_ground_truth(gt)
+    finally:
+        sim.close()
+    click.echo(f"{writer.dir}: complete ({n} files captured now)")
+
+
+def _capture_real(scene: str, out: Path, rig) -> None:  # type: ignore[no-untyped-def]
+    from .capture import OperatorBoard, RigDevices, run_scene
+    from .devices import open_bodies
+    from .display import PatternWindow
+    from .escvp21 import EpsonProjector
+    from .rawsession import RawSessionWriter
+
+    if not all(b.serial for b in rig.bodies) and len(rig.bodies) == 2:
+        log.warning("rig.toml gives no body serials: bodies are taken in USB order")
+    writer = RawSessionWriter(out, scene, rig, "CR2", extra={"simulated": False})
+    projector = EpsonProjector(rig.projector.port)
+    window = PatternWindow(rig.projector.width, rig.projector.height, rig.projector.display_index, rig.projector.settle_s)
+    try:
+        bodies = open_bodies(rig)
+    except BaseException:
+        projector.close()
+        window.close()
+        raise
+    devices = RigDevices(bodies, projector, window, OperatorBoard(lambda msg: click.prompt(msg, default="", show_default=False)))
+    try:
+        n = run_scene(rig, devices, writer)
+    finally:
+        devices.close()
+    click.echo(f"{writer.dir}: complete ({n} files captured now)")
+
+
+@click.command("devices")
+@click.option("--sim", is_flag=True, help="List the simulated rig's devices instead.")
+def devices_command(sim: bool) -> None:
+    """List Canon bodies (USB vendor 04a9, serial numbers) and serial ports for the projector."""
+    from .devices import find_bodies, serial_ports
+
+    closer = None
+    if sim:
+        from .sim.world import make_sim_rig
+
+        s = make_sim_rig()
+        bodies, ports, closer = find_bodies(s.backend), [f"{s.rig.projector.port}  simulated EPSON EB-U42 (ESC/VP21)"], s.close
+    else:
+        bodies, ports = find_bodies(), serial_ports()
+    try:
+        click.echo(f"Canon bodies ({len(bodies)}):")
+        for b in bodies:
+            click.echo(f"  {b.line()}")
+        click.echo(f"serial ports ({len(ports)}) for the projector:")
+        for p in ports:
+            click.echo(f"  {p}")
+    finally:
+        if closer:
+            closer()
+
+
+@click.command("verify")
+@click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--no-dp-check", is_flag=True, help="Skip opening every raw with rawpy (sizes and SHA-256 only).")
+def verify_command(scenes: tuple[Path, ...], no_dp_check: bool) -> None:
+    """Verify raw sessions: every file's size and SHA-256, the per-kind counts, Dual Pixel frames."""
+    from .rawsession import verify_session
+
+    bad = 0
+    for scene in scenes:
+        if not (scene / "manifest.json").is_file():
+            raise BadInputError("no manifest.json: not a raw capture session", where=scene)
+        report = verify_session(scene, check_dual_pixel=not no_dp_check)
+        counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
+        status = "OK" if not report.problems else f"{len(report.problems)} problems"
+        click.echo(f"{scene}: {status}: {report.files} files, {report.bytes / 1e6:.1f} MB ({counts})")
+        for p in report.problems:
+            click.echo(f"  {p}")
+        bad += bool(report.problems)
+    if bad:
+        raise DatasetFormatError(f"{bad} of {len(scenes)} sessions failed verification", where="verify")

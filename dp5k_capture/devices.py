@@ -1,0 +1,114 @@
+"""Device discovery and opening: Canon bodies by USB vendor id and serial number, the projector's port.
+
+The 5D Mark IV's DeviceInfo reports VendorExtensionID 6 (not Canon's 0xB), so Canon is recognised by USB
+vendor id 0x04A9 and the body by the USB iSerialNumber string (checked against DeviceInfo and ``rig.toml``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import usb.core
+import usb.util
+from serial.tools import list_ports
+
+from dp5k_common.errors import DeviceError
+
+from .canon import CaptureTiming, EosCamera
+from .ptp.codes import CANON_VID, PTP_INTERFACE_CLASS
+from .ptp.session import PTPSession, SessionConfig
+from .ptp.transport import UsbTransport, map_usb_error
+from .rig import RigConfig
+
+
+@dataclass
+class FoundBody:
+    """A Canon PTP device on USB."""
+
+    vid: int
+    pid: int
+    serial: str
+    product: str
+    bus: int | None
+    address: int | None
+    device: Any
+
+    def line(self) -> str:
+        return f"{self.vid:04x}:{self.pid:04x} bus {self.bus} addr {self.address}  serial {self.serial or '?'}  {self.product}"
+
+
+def _is_ptp(dev: usb.core.Device) -> bool:
+    try:
+        for cfg in dev:
+            if usb.util.find_descriptor(cfg, bInterfaceClass=PTP_INTERFACE_CLASS) is not None:
+                return True
+    except usb.core.USBError:
+        return False
+    return False
+
+
+def find_bodies(backend: Any = None) -> list[FoundBody]:
+    """Every Canon (VID 0x04A9) USB device with a Still Image interface."""
+    try:
+        devs = list(usb.core.find(find_all=True, idVendor=CANON_VID, backend=backend) or [])
+    except usb.core.NoBackendError as exc:
+        raise DeviceError(f"no libusb backend ({exc}); install libusb-1.0", where="usb") from None
+    out = []
+    for dev in devs:
+        if not _is_ptp(dev):
+            continue
+        serial = product = ""
+        try:
+            serial = usb.util.get_string(dev, dev.iSerialNumber) or "" if dev.iSerialNumber else ""
+            product = usb.util.get_string(dev, dev.iProduct) or "" if dev.iProduct else ""
+        except (usb.core.USBError, ValueError, NotImplementedError):
+            pass  # no permission to read strings: still listed
+        out.append(FoundBody(dev.idVendor, dev.idProduct, serial, product, dev.bus, dev.address, dev))
+    return out
+
+
+def serial_ports() -> list[str]:
+    """Serial ports on this machine (candidates for the projector's RS-232C adapter)."""
+    return [f"{p.device}  {p.description}" for p in list_ports.comports()]
+
+
+def open_body(found: FoundBody, cam_id: str, config: SessionConfig | None = None, timing: CaptureTiming | None = None) -> EosCamera:
+    """Open a PTP session on a found body and put it into EOS remote mode."""
+    name = f"{cam_id} ({found.product or 'Canon'} serial {found.serial or '?'})"
+    transport = UsbTransport(found.device, name)
+    cam = EosCamera(PTPSession(transport, config), (found.vid, found.pid), timing)
+    info = cam.open()
+    if found.serial and info.serial_number and not info.serial_number.endswith(found.serial):
+        raise DeviceError(f"DeviceInfo serial {info.serial_number} does not match USB serial {found.serial}", where=name)
+    return cam
+
+
+def open_bodies(rig: RigConfig, backend: Any = None, config: SessionConfig | None = None,
+                timing: CaptureTiming | None = None) -> dict[str, EosCamera]:
+    """Open the rig's two bodies, matched by serial number (in rig order if no serials are configured)."""
+    found = find_bodies(backend)
+    listing = "; ".join(f.line() for f in found) or "none"
+    chosen: dict[str, FoundBody] = {}
+    for i, b in enumerate(rig.bodies):
+        if b.serial:
+            match = [f for f in found if f.serial == b.serial]
+            if not match:
+                raise DeviceError(f"body with serial {b.serial} not found on USB (found: {listing})", where=b.id)
+            chosen[b.id] = match[0]
+        else:
+            if len(found) != len(rig.bodies):
+                raise DeviceError(f"rig.toml gives no serials and {len(found)} Canon bodies are connected (found: {listing})", where=b.id)
+            chosen[b.id] = found[i]
+    cams: dict[str, EosCamera] = {}
+    try:
+        for cam_id, f in chosen.items():
+            try:
+                cams[cam_id] = open_body(f, cam_id, config, timing)
+            except usb.core.USBError as exc:
+                raise map_usb_error(exc, cam_id, "open") from None
+    except BaseException:
+        for cam in cams.values():
+            cam.close()
+        raise
+    return cams

@@ -1,0 +1,271 @@
+"""The raw capture session on disk (docs/data-format.md, "Raw capture session, version 1").
+
+``RAW/<scene>/manifest.json`` + ``cam0/``, ``cam1/`` raw files (+ ``ground_truth/`` for simulated
+sessions). Every file is written under a temporary name, checked, fsynced and renamed; the manifest is
+rewritten atomically after each file, so an interrupted capture resumes where it stopped and a completed
+file is never overwritten. :func:`verify_session` re-hashes everything.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import errno
+import hashlib
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
+from dp5k_common.io import read_json, sha256_file, write_json_atomic
+
+from .patterns import projection_count
+from .rig import RigConfig
+
+FORMAT = "dp5k-raw-session"
+VERSION = 1
+KINDS = ("charuco", "dp", "sharp", "sl")
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One planned exposure of both bodies.
+
+    Attributes:
+        kind: ``charuco``, ``dp``, ``sharp`` or ``sl``.
+        stem: file name without extension (``dp_f1.8``, ``sl_07``, ``charuco_2``).
+        f_number: aperture N.
+        shutter_s: exposure time (s), a value the body can set.
+        iso: ISO speed.
+        index: projection index (sl) or board view (charuco); None otherwise.
+    """
+
+    kind: str
+    stem: str
+    f_number: float
+    shutter_s: float
+    iso: int
+    index: int | None = None
+
+
+def f_label(f_number: float) -> str:
+    """``1.8 -> "1.8"``, ``2.0 -> "2"``, ``22.0 -> "22"`` (file names ``dp_f2``, ``sharp_f22``)."""
+    return f"{f_number:g}"
+
+
+def plan_scene(rig: RigConfig) -> list[Shot]:
+    """The scene's exposures in capture order: ChArUco views, DP apertures, the sharp frame, structured light."""
+    e = rig.exposure
+    shots = [Shot("charuco", f"charuco_{v}", e.charuco_f_number, e.charuco_shutter_s, e.iso, v) for v in range(e.charuco_views)]
+    shots += [Shot("dp", f"dp_f{f_label(f)}", f, e.dp_shutter_s(f), e.iso) for f in e.dp_f_numbers]
+    shots.append(Shot("sharp", f"sharp_f{f_label(e.sharp_f_number)}", e.sharp_f_number, e.sharp_shutter_s, e.iso))
+    n = projection_count(rig.projector.width, rig.projector.height)
+    shots += [Shot("sl", f"sl_{k:02d}", e.sl_f_number, e.sl_shutter_s, e.iso, k) for k in range(n)]
+    return shots
+
+
+def now_iso() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+class CaptureStorageError(DP5KError):
+    """Writing the session failed (disk full, permissions); completed files were kept."""
+
+
+class RawSessionWriter:
+    """Writes one scene's raw session; resumes an incomplete one.
+
+    Args:
+        root: the ``--out`` folder (``RAW``).
+        scene: scene name (folder-safe).
+        rig: the rig (recorded in the manifest).
+        ext: raw file extension (``CR2`` on the rig, ``dng`` from simulated bodies).
+        extra: additional manifest keys (e.g. ``simulated``).
+
+    Raises:
+        BadInputError: the scene is already complete (never overwritten), or its manifest is unreadable.
+    """
+
+    def __init__(self, root: str | Path, scene: str, rig: RigConfig, ext: str, extra: dict[str, Any] | None = None) -> None:
+        if not scene or any(c not in "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-" for c in scene):
+            raise BadInputError(f"scene name {scene!r} must use letters, digits, '.', '_', '-'", where="--scene")
+        self.dir = Path(root) / scene
+        self.scene = scene
+        self.ext = ext
+        self.manifest_path = self.dir / "manifest.json"
+        if self.manifest_path.exists():
+            self.manifest = read_json(self.manifest_path)
+            if self.manifest.get("format") != FORMAT:
+                raise BadInputError("not a dp5k raw session manifest", where=self.manifest_path)
+            if self.manifest.get("complete"):
+                raise BadInputError("scene already captured and complete; captured data is never overwritten (use another --scene or --out)", where=self.dir)
+            if self.manifest.get("rig", {}).get("bodies") != _rig_json(rig)["bodies"]:
+                raise BadInputError("an incomplete session of this scene was captured with a different rig; finish it with that rig or use another --scene", where=self.manifest_path)
+        else:
+            self.manifest = {
+                "format": FORMAT, "version": VERSION, "scene": scene, "created": now_iso(), "updated": now_iso(),
+                "rig": _rig_json(rig), "exposure": asdict(rig.exposure), "focus_point_px": {}, "files": [],
+                "complete": False, **(extra or {}),
+            }
+        self._by_path = {f["path"]: f for f in self.manifest["files"]}
+
+    # ------------------------------------------------------------------ state
+    def relpath(self, camera: str, shot: Shot) -> str:
+        return f"{camera}/{shot.stem}.{self.ext}"
+
+    def done(self, camera: str, shot: Shot) -> bool:
+        """The file is recorded and present with its recorded size (a cheap check; verify re-hashes)."""
+        rel = self.relpath(camera, shot)
+        entry = self._by_path.get(rel)
+        path = self.dir / rel
+        return entry is not None and path.is_file() and path.stat().st_size == entry["size"]
+
+    def set_focus_point(self, camera: str, point_px: tuple[int, int]) -> None:
+        self.manifest["focus_point_px"][camera] = [int(point_px[0]), int(point_px[1])]
+        self._save()
+
+    def _save(self) -> None:
+        self.manifest["updated"] = now_iso()
+        try:
+            write_json_atomic(self.manifest_path, self.manifest)
+        except OSError as exc:
+            raise _storage_error(exc, self.manifest_path) from None
+
+    # ------------------------------------------------------------------ files
+    def add(self, camera: str, shot: Shot, data: bytes, meta: dict[str, Any],
+            check: Callable[[Path], None] | None = None) -> dict[str, Any]:
+        """Write one raw file atomically, run ``check`` on it before it gets its final name, record it.
+
+        Never overwrites: a file already at the final name that is not recorded (a crash between the
+        rename and the manifest update) is adopted if ``check`` accepts it, else it is an error.
+        """
+        rel = self.relpath(camera, shot)
+        final = self.dir / rel
+        if rel in self._by_path and final.exists():
+            raise BadInputError("already captured; never overwritten", where=final)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():
+            data = final.read_bytes()  # adopt the orphan completed file (written atomically earlier)
+            if check is not None:
+                check(final)
+        else:
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=f".{self.ext}", dir=final.parent)
+            tmp = Path(tmp_name)
+            try:
+                with os.fdopen(fd, "wb") as fh:
+                    fh.write(data)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                if check is not None:
+                    check(tmp)
+                if final.exists():
+                    raise BadInputError("appeared while writing; never overwritten", where=final)
+                os.replace(tmp, final)
+            except OSError as exc:
+                raise _storage_error(exc, final) from None
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+        entry = {
+            "path": rel, "kind": shot.kind, "camera": camera, "f_number": shot.f_number, "shutter_s": shot.shutter_s,
+            "iso": shot.iso, **({"pattern": shot.index} if shot.kind == "sl" else {}),
+            **({"view": shot.index} if shot.kind == "charuco" else {}),
+            "timestamp": now_iso(), "size": len(data), "sha256": hashlib.sha256(data).hexdigest(), **meta,
+        }
+        self.manifest["files"].append(entry)
+        self._by_path[rel] = entry
+        self._save()
+        return entry
+
+    def finish(self, rig: RigConfig) -> None:
+        """Verify every file of the plan (size + SHA-256) and mark the session complete."""
+        report = verify_session(self.dir, check_dual_pixel=False, rig=rig)
+        if report.problems:
+            raise DatasetFormatError(f"session not complete: {report.problems[0]} (+{len(report.problems) - 1} more)", where=self.dir)
+        self.manifest["complete"] = True
+        self.manifest["completed"] = now_iso()
+        self._save()
+
+
+def _storage_error(exc: OSError, path: Path) -> DP5KError:
+    if exc.errno == errno.ENOSPC:
+        return CaptureStorageError("disk full; completed files were kept; free space and rerun to resume", where=path)
+    return CaptureStorageError(f"cannot write ({exc.strerror or exc}); completed files were kept; rerun to resume", where=path)
+
+
+def _rig_json(rig: RigConfig) -> dict[str, Any]:
+    return {
+        "bodies": [{"id": b.id, "model": b.model, "serial": b.serial, "lens": b.lens,
+                    "sensor_size_mm": list(b.sensor_size_mm), "raw_size_px": list(b.raw_size_px)} for b in rig.bodies],
+        "projector": {"model": rig.projector.model, "resolution": [rig.projector.width, rig.projector.height],
+                      "port": rig.projector.port, "source": rig.projector.source},
+        "aux_view": rig.aux_view,
+    }
+
+
+@dataclass
+class VerifyReport:
+    """Result of :func:`verify_session`: counts per kind and every problem found (empty = good)."""
+
+    counts: dict[str, int]
+    problems: list[str]
+    files: int
+    bytes: int
+
+
+def verify_session(scene_dir: str | Path, *, check_dual_pixel: bool = True, rig: RigConfig | None = None) -> VerifyReport:
+    """Check a raw session: manifest, every file's size and SHA-256, the per-kind counts, and (optionally)
+    that every raw is a two-frame Dual Pixel RAW.
+
+    Raises:
+        BadInputError: no manifest or not a raw session manifest.
+    """
+    scene_dir = Path(scene_dir)
+    manifest = read_json(scene_dir / "manifest.json")
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
+        raise DatasetFormatError(f"not a {FORMAT} v{VERSION} manifest", where=scene_dir / "manifest.json")
+    problems: list[str] = []
+    counts = {k: 0 for k in KINDS}
+    total = 0
+    bodies = [b["id"] for b in manifest.get("rig", {}).get("bodies", [])]
+    for entry in manifest.get("files", []):
+        path = scene_dir / entry["path"]
+        if not path.is_file():
+            problems.append(f"{entry['path']}: missing")
+            continue
+        size = path.stat().st_size
+        if size != entry["size"]:
+            problems.append(f"{entry['path']}: size {size} != manifest {entry['size']}")
+            continue
+        if sha256_file(path) != entry["sha256"]:
+            problems.append(f"{entry['path']}: SHA-256 mismatch")
+            continue
+        if check_dual_pixel:
+            from dp5k_common.rawfile import read_dual_pixel
+
+            try:
+                read_dual_pixel(path)
+            except BadInputError as exc:
+                problems.append(f"{entry['path']}: {exc.message}")
+                continue
+        counts[entry["kind"]] = counts.get(entry["kind"], 0) + 1
+        total += size
+    nb = max(len(bodies), 1)
+    exposure = manifest.get("exposure", {})
+    res = manifest.get("rig", {}).get("projector", {}).get("resolution", [1920, 1200])
+    expected = {
+        "dp": nb * len(exposure.get("dp_f_numbers", (1.8, 2, 2.8, 4, 5.6))),
+        "sharp": nb,
+        "charuco": nb * int(exposure.get("charuco_views", 3)),
+        "sl": nb * projection_count(int(res[0]), int(res[1])),
+    }
+    for kind, want in expected.items():
+        if counts.get(kind, 0) != want:
+            problems.append(f"{kind}: {counts.get(kind, 0)} verified files, expected {want}")
+    for b in bodies:
+        if b not in manifest.get("focus_point_px", {}):
+            problems.append(f"{b}: no focus point recorded")
+    return VerifyReport(counts, problems, sum(counts.values()), total)

@@ -1,0 +1,291 @@
+"""The simulated rig: two simulated EOS bodies on a simulated USB bus, a simulated EB-U42 on a pty, a
+headless pattern window feeding the projector's HDMI input, and the world they photograph.
+
+The world is a :class:`~dp5k_capture.sim.eos_body.BodyOptics`: :class:`StudioOptics` renders through the
+virtual studio (``dp5k_capture.sim.studio``); :class:`FlatOptics` is a tiny textured plane used by the
+protocol and fault tests (fast, no studio). Both write each exposure as a two-frame Dual Pixel DNG with
+``dp5k_common.rawfile.write_dual_pixel_dng`` (or one frame when the body's DPRAW setting is off).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import tifffile
+import usb.core
+from numpy.typing import NDArray
+
+from dp5k_common.rawfile import write_dual_pixel_dng
+
+from ..display import PatternWindow
+from ..rig import BodyConfig, ProjectorConfig, RigConfig
+from .eos_body import BodyFaults, ExposureSettings, SimulatedEOS
+from .projector import SimulatedEBU42
+from .usb_backend import SimUsbBackend
+from .usb_device import SimUsbPtpDevice
+
+SIM_SERIALS = ("SIM5D4000001", "SIM5D4000002")
+
+
+def dng_bytes(main: NDArray[np.uint16], aux: NDArray[np.uint16] | None, black: int, white: int,
+              wb: tuple[float, float, float], metadata: dict[str, Any]) -> bytes:
+    """Encode one exposure as DNG bytes: two frames (Dual Pixel) or, if ``aux`` is None, one frame."""
+    with tempfile.TemporaryDirectory(prefix="dp5k-sim-") as tmp:
+        path = Path(tmp) / "shot.dng"
+        if aux is None:
+            _write_single_frame_dng(path, main, black, white, metadata)
+        else:
+            write_dual_pixel_dng(path, main, aux, black, white, wb, metadata)
+        return path.read_bytes()
+
+
+def _write_single_frame_dng(path: Path, main: NDArray[np.uint16], black: int, white: int, metadata: dict[str, Any]) -> None:
+    """A plain one-frame Bayer DNG: what a body with Dual Pixel RAW switched off would deliver."""
+    tags = [
+        (50706, "B", 4, (1, 4, 0, 0), True), (271, "s", 0, "Canon", True), (272, "s", 0, "Canon EOS 5D Mark IV", True),
+        (50708, "s", 0, "Canon EOS 5D Mark IV", True), (33421, "H", 2, (2, 2), False), (33422, "B", 4, (0, 1, 1, 2), False),
+        (50714, "I", 1, int(black), False), (50717, "I", 1, int(white), False),
+    ]
+    tifffile.imwrite(path, main, photometric=32803, subfiletype=0, metadata=None,
+                     description=json.dumps(metadata), extratags=tags)
+
+
+class FlatOptics:
+    """A tiny world: a textured, slightly tilted plane 1.2-1.6 m away, lit by ambient light and the
+    projector. The aux (left photodiode) frame is half the main frame shifted by a defocus disparity.
+
+    Args:
+        raw_size_px: (W, H) of the raw frames (even).
+        lit_image: returns what the projector throws on the scene (uint8 grey at any size) or None.
+    """
+
+    def __init__(self, raw_size_px: tuple[int, int] = (96, 64), lit_image: Callable[[], NDArray[np.uint8] | None] | None = None,
+                 seed: int = 0) -> None:
+        self.w, self.h = raw_size_px
+        self.lit_image = lit_image or (lambda: None)
+        rng = np.random.default_rng(seed)
+        self.albedo = cv2.resize(rng.uniform(0.2, 0.9, (self.h // 4, self.w // 4)), (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        yy, xx = np.mgrid[0 : self.h, 0 : self.w]
+        self.depth_m = 1.2 + 0.4 * xx / max(self.w - 1, 1)  # (H, W) tilted plane, metres
+        self.board: int | None = None
+        self.exposures: list[ExposureSettings] = []
+
+    def place(self, view: int) -> None:
+        self.board = view
+
+    def clear(self) -> None:
+        self.board = None
+
+    def autofocus_m(self, serial: str, point_px: tuple[float, float]) -> float:
+        x = int(np.clip(point_px[0], 0, self.w - 1))
+        y = int(np.clip(point_px[1], 0, self.h - 1))
+        return float(self.depth_m[y, x])
+
+    def expose(self, s: ExposureSettings) -> bytes:
+        self.exposures.append(s)
+        light = np.full((self.h, self.w), 0.3)
+        lit = self.lit_image()
+        if lit is not None:
+            light = light + cv2.resize(lit.astype(np.float64) / 255.0, (self.w, self.h), interpolation=cv2.INTER_NEAREST)
+        scene = self.albedo * light
+        if self.board is not None:  # a checkerboard patch standing in for the ChArUco board
+            y0, x0, bh, bw = self.h // 4, self.w // 4 + 4 * self.board, self.h // 2, self.w // 3
+            yy, xx = np.indices((bh, bw))
+            scene[y0 : y0 + bh, x0 : x0 + bw] = ((yy // 4 + xx // 4) % 2).astype(np.float64)
+        gain = s.shutter_s * s.iso / 100.0 / s.f_number**2 * 2000.0
+        black, white = 512, 16383
+        main = np.clip(black + scene * gain * (white - black), 0, white).astype(np.uint16)
+        focus = s.focus_distance_m or 1.4
+        shift = int(np.clip(round(8.0 / s.f_number * (1.0 - focus / float(self.depth_m.mean()))), -3, 3))
+        aux_lin = np.roll((main.astype(np.float64) - black) / 2.0, shift, axis=1)
+        aux = np.clip(black + aux_lin, 0, white).astype(np.uint16)
+        meta = {"serial": s.serial, "f_number": s.f_number, "shutter_s": s.shutter_s, "iso": s.iso,
+                "focus_distance_m": s.focus_distance_m, "sequence": s.sequence}
+        return dng_bytes(main, aux if s.dual_pixel_raw else None, black, white, (2.0, 1.0, 1.5), meta)
+
+
+class StudioOptics:
+    """The virtual studio as the bodies' world (``dp5k_capture.sim.studio``).
+
+    Each exposure shows the projector's current output (``projector.lit_image()``: the pattern window's
+    framebuffer while the projector is on, unmuted and on HDMI) in the studio and renders camera ``i``
+    (the body whose serial is the studio camera's serial) at the body's aperture, shutter, ISO and focus.
+    The ChArUco board is placed by :meth:`place` (3 poses facing the rig near the focus target).
+
+    Args:
+        scene: studio scene name or seed.
+        projector: the simulated projector (its lit image lights the scene).
+        scale: studio rig scale (``"small"``, or a sensor downscale factor; larger = smaller images).
+        seed: rig / noise seed.
+    """
+
+    def __init__(self, scene: str | int, projector: SimulatedEBU42, scale: float | str = 60, seed: int = 0,
+                 effects: Any = None) -> None:
+        from .studio import Studio, make_rig, make_scene
+
+        self.srig = make_rig(scale, seed=seed)
+        self.studio = Studio(make_scene(scene, self.srig), self.srig, effects, seed=seed)
+        self.projector = projector
+        self.seed = seed
+        cams = self.srig.cameras
+        self.serials = [c.serial for c in cams]
+        self.raw_sizes_px = [(c.width, c.height) for c in cams]
+        self.focus_points_px = [tuple(int(v) for v in self.studio.focus_point_px(i)) for i in range(2)]
+        self._shown: bytes | None = b"unset"
+        self.board_poses: dict[int, tuple[list[list[float]], list[float]]] = {}
+        self.focus_m: dict[int, float] = {}
+
+    def _index(self, serial: str) -> int:
+        return self.serials.index(serial)
+
+    def autofocus_m(self, serial: str, point_px: tuple[float, float]) -> float:
+        i = self._index(serial)
+        self.focus_m[i] = float(self.studio.focus_distance_m(i, point_px))
+        return self.focus_m[i]
+
+    def board_pose(self, view: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Board -> world pose of view ``view``: facing the rig, 0.25 m in front of the focus target, tilted."""
+        from calib.board import DEFAULT_BOARD
+
+        yaw, pitch = [(0.0, 0.0), (np.deg2rad(18), np.deg2rad(5)), (np.deg2rad(-15), np.deg2rad(-10))][view % 3]
+        cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+        R = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) @ np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+        target = np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)
+        centre = np.array([0.0, 0.0, target[2] - 0.25])
+        w, h = DEFAULT_BOARD.size_m
+        t = centre - R @ np.array([w / 2, h / 2, 0.0])
+        return R, t
+
+    def place(self, view: int) -> None:
+        R, t = self.board_pose(view)
+        self.board_poses[view] = (R.tolist(), t.tolist())
+        self.studio.set_board_pose((R, t))
+
+    def clear(self) -> None:
+        self.studio.set_board_pose(None)
+
+    def expose(self, s: ExposureSettings) -> bytes:
+        i = self._index(s.serial)
+        lit = self.projector.lit_image()
+        key = None if lit is None else hashlib.sha1(np.ascontiguousarray(lit).tobytes()).digest()
+        if key != self._shown:
+            self.studio.set_projector_image(lit)
+            self._shown = key
+        focus = s.focus_distance_m if s.focus_distance_m is not None else self.studio.focus_distance_m(i, self.focus_points_px[i])
+        rng = np.random.default_rng([self.seed, i, s.sequence])
+        raw = self.studio.expose(i, s.f_number, focus, s.shutter_s, s.iso, rng)
+        meta = {**raw.metadata, "sequence": s.sequence}
+        return dng_bytes(raw.main, raw.aux if s.dual_pixel_raw else None, raw.black_level, raw.white_level, raw.wb_gains, meta)
+
+    def write_ground_truth(self, folder: Path) -> list[Path]:
+        """``ground_truth/``: per camera depth (16-bit PNG, mm, 0 = no surface) and projector correspondence
+        (``camN_proj_xy.npy`` float32 (H, W, 2), NaN = unlit), plus ``truth.json`` (intrinsics K/dist,
+        extrinsics R/t world -> camera, stereo R/T, projector, pixel pitch, focal length, recorded and true
+        focus distance, focus point, the ChArUco board poses used, effects)."""
+        from dp5k_common.io import write_json_atomic, write_png16
+
+        folder = Path(folder)
+        written = []
+        self.clear()
+        self.studio.set_projector_image(None)
+        self._shown = None
+        truth: dict[str, Any] = {"scene": str(self.studio.scene.name) if hasattr(self.studio.scene, "name") else None,
+                                 "cameras": {}, "board_poses": {str(k): v for k, v in self.board_poses.items()}}
+        for i in range(2):
+            gt = self.studio.ground_truth(i)
+            depth_mm = np.where(np.isfinite(gt["depth_m"]), np.rint(gt["depth_m"] * 1000.0), 0)
+            path = folder / f"cam{i}_depth_mm.png"
+            write_png16(path, np.clip(depth_mm, 0, 65535).astype(np.uint16))
+            written.append(path)
+            npy = folder / f"cam{i}_proj_xy.npy"
+            from dp5k_common.io import atomic_path
+
+            with atomic_path(npy, suffix=".npy") as tmp:
+                np.save(tmp, np.asarray(gt["proj_xy"], dtype=np.float32))
+            written.append(npy)
+            rec = self.focus_m.get(i)
+            truth["cameras"][f"cam{i}"] = {
+                "serial": self.serials[i], "K": gt["K"].tolist(), "dist": gt["dist"].tolist(), "R": gt["R"].tolist(),
+                "t": gt["t"].tolist(), "width": gt["width"], "height": gt["height"],
+                "pixel_pitch_mm": gt["pixel_pitch_mm"], "focal_length_mm": gt["focal_length_mm"],
+                "focus_point_px": list(self.focus_points_px[i]),
+                "focus_distance_recorded_m": rec,
+                "focus_distance_true_m": None if rec is None else self.studio.true_focus_mm(rec) / 1000.0,
+            }
+            if i == 0:
+                p = gt["projector"]
+                truth["projector"] = {"K": p["K"].tolist(), "R": p["R"].tolist(), "t": p["t"].tolist(),
+                                      "width": p["width"], "height": p["height"]}
+                truth["stereo_R"] = np.asarray(gt["stereo_R"]).tolist()
+                truth["stereo_T"] = np.asarray(gt["stereo_T"]).tolist()
+                truth["effects"] = gt["effects"]
+        write_json_atomic(folder / "truth.json", truth)
+        written.append(folder / "truth.json")
+        return written
+
+
+@dataclass
+class SimRig:
+    """Everything a ``--sim`` capture connects to (the client code opens it exactly like the real rig).
+
+    Attributes:
+        rig: the rig configuration (serials of the simulated bodies, the pty as projector port).
+        backend: the pyusb backend that enumerates the simulated bodies.
+        bodies: the bodies' PTP cores, by camera id.
+        usb_devices: their USB framings (fault injection), by camera id.
+        projector: the simulated EB-U42.
+        window: the headless pattern window (its framebuffer is the projector's HDMI input).
+        optics: the world (also the ChArUco board positioner).
+    """
+
+    rig: RigConfig
+    backend: SimUsbBackend
+    bodies: dict[str, SimulatedEOS]
+    usb_devices: dict[str, SimUsbPtpDevice]
+    projector: SimulatedEBU42
+    window: PatternWindow
+    optics: Any
+
+    def close(self) -> None:
+        self.projector.stop()
+
+
+def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[SimulatedEBU42, PatternWindow], Any] | None = None,
+                 raw_size_px: tuple[int, int] = (96, 64), warmup_s: float = 0.2, seed: int = 0) -> SimRig:
+    """Build the simulated rig. ``optics_factory(projector, window)`` makes the world (default :class:`FlatOptics`)."""
+    base = base or RigConfig()
+    p = base.projector
+    window = PatternWindow(p.width, p.height, display_index=0, settle_s=0.0, headless=True)
+    projector = SimulatedEBU42(warmup_s=warmup_s, hdmi=window.frame)
+    port = projector.serve_pty()
+    if optics_factory is None:
+        optics: Any = FlatOptics(raw_size_px, projector.lit_image, seed)
+        sizes = [raw_size_px, raw_size_px]
+    else:
+        optics = optics_factory(projector, window)
+        sizes = list(getattr(optics, "raw_sizes_px", [raw_size_px, raw_size_px]))
+    serials = list(getattr(optics, "serials", SIM_SERIALS))
+    points = list(getattr(optics, "focus_points_px", [(w // 2, h // 2) for (w, h) in sizes]))
+    bodies_cfg = tuple(
+        replace(b, serial=serials[i], raw_size_px=tuple(sizes[i]), focus_point_px=tuple(points[i]))
+        for i, b in enumerate(base.bodies)
+    )
+    rig = replace(base, bodies=bodies_cfg, projector=replace(p, port=port))
+    bodies, devs = {}, {}
+    for i, b in enumerate(rig.bodies):
+        core = SimulatedEOS(b.serial, optics, faults=BodyFaults())
+        bodies[b.id] = core
+        devs[b.id] = SimUsbPtpDevice(core, address=10 + i)
+    backend = SimUsbBackend(list(devs.values()))
+    return SimRig(rig, backend, bodies, devs, projector, window, optics)
+
+
+__all__ = ["SimRig", "make_sim_rig", "FlatOptics", "dng_bytes", "SIM_SERIALS", "ProjectorConfig", "usb"]
