@@ -207,7 +207,7 @@ def make_dataset(
     for sc, cam_i in progress(jobs, desc="studio pairs", unit="view"):
         scene = make_scene(sc, rig)
         cam = rig.cameras[cam_i].scaled(W, H)
-        geom = view_geometry(scene, cam, rig.projector, (), supersample)
+        geom = view_geometry(scene, cam, None, (), supersample)
         radiance = geom.radiance(None)
         depth_mm = geom.depth_m * 1000.0
         Xc = cam.R @ scene.focus_target_m + cam.t

@@ -61,7 +61,7 @@ _DISC_XY = np.stack([_DISC_R * np.cos(_i * _GOLDEN), _DISC_R * np.sin(_i * _GOLD
 
 SMALL_STEP_PX = 0.5
 SMALL_LIMIT_PX = 4.0
-GEOM_STEP = 0.12
+GEOM_STEP = 0.08
 LOWRES_RADIUS_PX = 8.0
 
 

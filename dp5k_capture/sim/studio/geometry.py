@@ -222,8 +222,9 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
     return t_best, idx
 
 
-def shade_albedo(prims: list, p: Arr, idx: NDArray[np.int32]) -> tuple[NDArray[np.float32], Arr]:
-    """Albedo (N, 3) and unit normal (N, 3) at hit points ``p`` (N, 3) of primitives ``idx`` (N,), -1 = none."""
+def shade_albedo(prims: list, p: Arr, idx: NDArray[np.int32], albedo: bool = True) -> tuple[NDArray[np.float32], Arr]:
+    """Albedo (N, 3) and unit normal (N, 3) at hit points ``p`` (N, 3) of primitives ``idx`` (N,), -1 = none
+    (``albedo=False`` skips the textures and returns zeros for them)."""
     N = p.shape[0]
     alb = np.zeros((N, 3), np.float32)
     nrm = np.zeros((N, 3))
@@ -232,6 +233,7 @@ def shade_albedo(prims: list, p: Arr, idx: NDArray[np.int32]) -> tuple[NDArray[n
         if m.size == 0:
             continue
         u, v, n = prim.surface(p[m])
-        alb[m] = evaluate(prim.texture, u, v)
+        if albedo:
+            alb[m] = evaluate(prim.texture, u, v)
         nrm[m] = n
     return alb, nrm

@@ -114,16 +114,17 @@ def projector_visibility(prims: list, proj: ProjectorModel, X: NDArray[np.float6
     return np.where(lit[:, None], uv, np.nan), index, gain
 
 
-def view_geometry(scene, cam: CameraModel, projector: ProjectorModel, extra_prims: tuple = (), supersample: int = 2,
+def view_geometry(scene, cam: CameraModel, projector: ProjectorModel | None, extra_prims: tuple = (), supersample: int = 2,
                   chunk: int = 1 << 18) -> ViewGeometry:
     """Ray-cast one camera (see module docstring).
 
     Args:
         scene: the :class:`~.scenes.Scene`.
         cam: the camera (its width/height set the resolution).
-        projector: the projector model.
+        projector: the projector model, or None to skip the projector (no shadow rays; proj_xy all NaN).
         extra_prims: more primitives (the ChArUco board).
-        supersample: ``s`` x ``s`` rays per pixel for the radiance (box filter).
+        supersample: ``s`` x ``s`` rays per pixel for the radiance (box filter); with odd ``s`` the centre
+            ray is one of them, with even ``s`` one more ray per pixel centre is cast for depth.
     """
     prims = list(scene.prims) + list(extra_prims)
     H, W = cam.height, cam.width
@@ -137,12 +138,16 @@ def view_geometry(scene, cam: CameraModel, projector: ProjectorModel, extra_prim
     base = np.zeros(N, np.float32)
     pidx = np.full(N, -1, np.int64)
     pgain = np.zeros(N, np.float32)
+    depth_all = np.full(N, np.inf)
+    puv_all = np.full((N, 2), np.nan)
+    prim_all = np.full(N, -1, np.int32)
     xr, yr = xx.ravel(), yy.ravel()
     C = cam.center_m
     ldir = np.asarray(scene.light_dir, dtype=np.float64)
+    odd = s % 2 == 1
     for s0 in range(0, N, chunk):
         sl = slice(s0, min(N, s0 + chunk))
-        d, _ = pixel_rays(cam, xr[sl], yr[sl])
+        d, zc = pixel_rays(cam, xr[sl], yr[sl])
         t, idx = cast(prims, C, d)
         hit = idx >= 0
         X = C[None, :] + np.where(hit, t, 0.0)[:, None] * d
@@ -151,21 +156,34 @@ def view_geometry(scene, cam: CameraModel, projector: ProjectorModel, extra_prim
         n[flip] *= -1.0
         albedo[sl] = alb
         base[sl] = np.where(hit, scene.ambient + scene.key_light * np.clip(n @ ldir, 0.0, 1.0), 0.0)
-        h = np.nonzero(hit)[0]
-        _, pi, pg = projector_visibility(prims, projector, X[h], n[h])
-        pidx[s0 + h] = pi
-        pgain[s0 + h] = pg
-    # pixel centres: exact depth, projector coordinates and primitive ids
-    yc, xc = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
-    d, zc = pixel_rays(cam, xc.ravel(), yc.ravel())
-    t, idx = cast(prims, C, d)
-    hit = idx >= 0
-    depth = np.where(hit, t * zc, np.inf)
-    X = C[None, :] + np.where(hit, t, 0.0)[:, None] * d
-    _, n = shade_albedo(prims, X, idx)
-    flip = np.einsum("ij,ij->i", n, d) > 0
-    n[flip] *= -1.0
-    puv = np.full((hit.size, 2), np.nan)
-    h = np.nonzero(hit)[0]
-    puv[h] = projector_visibility(prims, projector, X[h], n[h])[0]
-    return ViewGeometry(H, W, s, albedo, base, pidx, pgain, depth.reshape(H, W), puv.reshape(H, W, 2), idx.reshape(H, W))
+        depth_all[sl] = np.where(hit, t * zc, np.inf)
+        prim_all[sl] = idx
+        if projector is not None:
+            h = np.nonzero(hit)[0]
+            uv, pi, pg = projector_visibility(prims, projector, X[h], n[h])
+            pidx[s0 + h] = pi
+            pgain[s0 + h] = pg
+            puv_all[s0 + h] = uv
+    if odd:
+        # pixel centres are the middle supersamples
+        c = s // 2
+        depth = depth_all.reshape(H, s, W, s)[:, c, :, c].copy()
+        puv = puv_all.reshape(H, s, W, s, 2)[:, c, :, c].copy()
+        prim = prim_all.reshape(H, s, W, s)[:, c, :, c].copy()
+    else:
+        yc, xc = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
+        d, zc = pixel_rays(cam, xc.ravel(), yc.ravel())
+        t, idx = cast(prims, C, d)
+        hit = idx >= 0
+        depth = np.where(hit, t * zc, np.inf).reshape(H, W)
+        prim = idx.reshape(H, W)
+        puv = np.full((hit.size, 2), np.nan)
+        if projector is not None:
+            X = C[None, :] + np.where(hit, t, 0.0)[:, None] * d
+            _, n = shade_albedo(prims, X, idx, albedo=False)
+            flip = np.einsum("ij,ij->i", n, d) > 0
+            n[flip] *= -1.0
+            h = np.nonzero(hit)[0]
+            puv[h] = projector_visibility(prims, projector, X[h], n[h])[0]
+        puv = puv.reshape(H, W, 2)
+    return ViewGeometry(H, W, s, albedo, base, pidx, pgain, depth, puv, prim)
