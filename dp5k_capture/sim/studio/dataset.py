@@ -143,8 +143,9 @@ def pair_from_rgbd(
         left = add_view_noise(left, eff, rng)
         right = add_view_noise(right, eff, rng)
     valid = np.isfinite(z) & (z > 0)
-    depth_out = np.where(valid, z, 0.0).astype(np.float32)
-    coc = coc_diameter_px(np.where(valid, np.rint(z), 0.0), float(focus_distance_mm), float(focal_length_mm), float(f_number), pitch)
+    depth_out = np.where(valid, np.clip(np.rint(z), 0, 65535), 0.0).astype(np.float32)  # depth.png holds whole mm
+    valid &= depth_out > 0
+    coc = coc_diameter_px(depth_out, float(focus_distance_mm), float(focal_length_mm), float(f_number), pitch)
     nz = effect_parameters("noise", eff.s("noise"))
     extra = {
         "effects": eff.to_json((W, H)),

@@ -1,0 +1,89 @@
+"""The direct route: make_dataset / pair_from_rgbd write valid format-v1 pairs with planted effects recorded."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dp5k_capture.sim.studio import EffectSet, make_dataset, pair_from_rgbd
+from dp5k_cli import main
+from dp5k_common.dataset import DatasetReader
+from dp5k_common.errors import BadInputError
+from dp5k_common.optics import coc_diameter_px
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "studio"
+    make_dataset(out, scenes=3, effects=["misregistration=1", "disparity_scale=2"], size=(96, 64), f_numbers=(1.8, 4.0), seed=4)
+    return out
+
+
+def test_dataset_is_valid_and_split_by_scene(dataset: Path) -> None:
+    r = DatasetReader(dataset)
+    assert len(r) == 3 * 2 * 2
+    scenes = {name: {r.params(pid).scene for pid in r.ids(name)} for name in ("train", "val", "test")}
+    assert not (scenes["train"] & scenes["val"]) and not (scenes["train"] & scenes["test"]) and not (scenes["val"] & scenes["test"])
+    for pid in r.ids():
+        p = r.load(pid)
+        assert pid == f"{p.params.scene}_{p.params.camera}_f{p.params.f_number:g}"
+        assert p.params.image_size == (96, 64) and p.params.pixel_pitch_mm == pytest.approx(36.0 / 96)
+        assert p.valid.all()
+
+
+def test_pairs_follow_eq6_eq2_and_record_the_planted_effects(dataset: Path) -> None:
+    r = DatasetReader(dataset)
+    idx = json.loads((dataset / "dataset.json").read_text())
+    assert set(idx["effects"]) == {"misregistration", "disparity_scale"}
+    for pid in r.ids():
+        p = r.load(pid)
+        pp = p.params
+        coc = coc_diameter_px(p.depth_mm, pp.focus_distance_mm, pp.focal_length_mm, pp.f_number, pp.pixel_pitch_mm)
+        assert np.allclose(p.coc_px, coc, rtol=1e-5, atol=1e-4)
+        x, y = (int(v) for v in pp.focus_point_px)
+        assert abs(p.depth_mm[y, x] - pp.focus_distance_mm) <= 0.5 + 1e-6  # depth.png is whole mm
+        eff = pp.extra["effects"]
+        assert eff["disparity_scale"]["disparity_factor"] == pytest.approx(1 / 3)
+        assert eff["misregistration"]["shift_px"] == pytest.approx([0.003 * 96, -0.0015 * 64])
+        # Eq. 2: the two views carry the sharp frame's light between them
+        assert (p.left + p.right).mean() == pytest.approx(p.sharp.mean(), rel=0.03)
+        assert p.left.mean() == pytest.approx(p.right.mean(), rel=0.03)
+
+
+def test_existing_dataset_is_not_overwritten(dataset: Path) -> None:
+    with pytest.raises(BadInputError):
+        make_dataset(dataset, scenes=1, size=(96, 64), f_numbers=(2.0,))
+
+
+def test_rgbd_route_handles_invalid_depth() -> None:
+    rng = np.random.default_rng(0)
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    depth = np.full((48, 64), 3000.0)
+    depth[10:20, 10:20] = 0.0
+    rp = pair_from_rgbd(img, depth, f_number=2.0, focus_distance_mm=1500.0, effects=EffectSet.of(noise=1.0))
+    assert np.isnan(rp.coc_px[10:20, 10:20]).all() and (rp.depth_mm[10:20, 10:20] == 0).all()
+    assert np.isfinite(rp.left).all() and np.isfinite(rp.coc_px[30:, 30:]).all()
+    assert np.array_equal(rp.sharp, np.clip(img, 0, 1))
+    with pytest.raises(BadInputError):
+        pair_from_rgbd(img, depth[:10], f_number=2.0, focus_distance_mm=1500.0)
+
+
+def test_cli_make_dataset_check_and_errors(tmp_path: Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "cli_ds"
+    res = runner.invoke(main, ["-q", "studio", "make-dataset", str(out), "--scenes", "1", "--size", "64x48",
+                               "--f-numbers", "2.8", "--effect", "noise=2"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "dataset.json").read_text())["effects"]["noise"]["strength"] == 2.0
+    assert runner.invoke(main, ["-q", "check", str(out)]).exit_code == 0
+    bad = runner.invoke(main, ["-q", "studio", "make-dataset", str(tmp_path / "x"), "--effect", "wobble=1"])
+    assert bad.exit_code == 3 and "unknown effect 'wobble'" in bad.output
+    assert not (tmp_path / "x" / "dataset.json").exists()
+    png = tmp_path / "preview.png"
+    res = runner.invoke(main, ["-q", "studio", "render", "boxes", str(png), "--scale", "60"])
+    assert res.exit_code == 0, res.output
+    assert png.stat().st_size > 1000
