@@ -176,10 +176,10 @@ class SimulatedEOS:
         self.events.append(ev.pack_prop_value(prop, value))
 
     def _queue_dump(self) -> None:
+        for prop in self.props:  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
+            self._queue_prop(prop)
         for prop, values in self.avail.items():
             self.events.append(ev.pack_avail_list(prop, values))
-        for prop in self.props:
-            self._queue_prop(prop)
         self.events.append(ev.pack_image_format_value(EosProp.IMAGE_FORMAT, *self.image_format))
         self._dumped = True
 
