@@ -51,20 +51,39 @@ def _to_uint8(image: NDArray) -> NDArray[np.uint8]:
     return np.clip((img - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
 
 
-def detect_charuco(image: NDArray, board: BoardSpec = DEFAULT_BOARD) -> CharucoDetection | None:
+def _detector_params() -> cv2.aruco.DetectorParameters:
+    """Marker detection tuned for small markers (a few pixels per bit), sub-pixel corner refinement."""
+    dp = cv2.aruco.DetectorParameters()
+    dp.errorCorrectionRate = 0.8
+    dp.perspectiveRemovePixelPerCell = 8
+    dp.perspectiveRemoveIgnoredMarginPerCell = 0.2
+    dp.minMarkerPerimeterRate = 0.01
+    dp.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    return dp
+
+
+def detect_charuco(image: NDArray, board: BoardSpec = DEFAULT_BOARD, upsample: int | None = None
+                   ) -> CharucoDetection | None:
     """Detect the ChArUco board in ``image`` (gray or RGB, any dtype); None when no corner is found.
 
     Args:
         image: (H, W) or (H, W, 3) image; linear raw data is stretched to 8 bit for detection.
         board: the board definition.
+        upsample: detect on an image enlarged this many times (cubic), corners mapped back; None = 2 for
+            images under 1000 px wide (markers of a few pixels per bit are found far more reliably), else 1.
     """
     gray = _to_uint8(image)
+    up = upsample if upsample is not None else (2 if gray.shape[1] < 1000 else 1)
+    if up > 1:
+        gray = cv2.resize(gray, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
     cv_board = board.cv_board()
-    det = cv2.aruco.CharucoDetector(cv_board)
+    det = cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(), _detector_params())
     cc, ci, mc, _mi = det.detectBoard(gray)
     if ci is None or cc is None or len(ci) == 0:
         return None
     cc = np.asarray(cc, dtype=np.float32).reshape(-1, 2)
+    if up > 1:
+        cc = (cc + 0.5) / up - 0.5  # pixel centres at integer coordinates in both images
     ci = np.asarray(ci, dtype=np.int32).reshape(-1)
     obj, imgp = cv_board.matchImagePoints(cc.reshape(-1, 1, 2), ci.reshape(-1, 1))
     obj = np.asarray(obj, dtype=np.float32).reshape(-1, 3)

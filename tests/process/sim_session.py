@@ -1,0 +1,100 @@
+"""Writes a small simulated raw capture session with the virtual studio (test fixture for ``dp5k process``).
+
+The layout follows docs/data-format.md; files go through ``dp5k_common.rawfile.write_dual_pixel_dng``. The
+studio's ground truth is returned in memory (and written under ground_truth/, which processing never reads).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.board import DEFAULT_BOARD
+from dp5k_capture.patterns import projection, projection_count
+from dp5k_capture.sim.studio.rig import make_rig
+from dp5k_capture.sim.studio.scenes import make_scene, plane_scene
+from dp5k_capture.sim.studio.studio import Studio
+from dp5k_common.io import sha256_file
+from dp5k_common.rawfile import write_dual_pixel_dng
+
+
+def board_pose(center: tuple[float, float, float], yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0):
+    """Board -> world pose (R, t) with the board centre at ``center`` (metres)."""
+    R = (cv2.Rodrigues(np.radians([0.0, yaw_deg, 0.0]))[0] @ cv2.Rodrigues(np.radians([pitch_deg, 0.0, 0.0]))[0]
+         @ cv2.Rodrigues(np.radians([0.0, 0.0, roll_deg]))[0])
+    w, h = DEFAULT_BOARD.size_m
+    return R, np.asarray(center, float) - R @ np.array([w / 2, h / 2, 0.0])
+
+
+CHARUCO_POSES = [board_pose((0.0, 0.0, 2.1), 18.0, 8.0, 3.0), board_pose((0.03, 0.02, 2.3), -20.0, -10.0, -4.0),
+                 board_pose((-0.03, -0.02, 2.0), 5.0, 15.0, 8.0)]
+"""Board poses at 2.0-2.3 m. The fixture renders them in front of a far plain wall (the rig's calibration
+shots; a hand-held board in front of the scene would be partly hidden by the scene's objects)."""
+
+
+def write_session(root: Path, scene_name: str, scale: str = "small", f_numbers=(1.8, 4.0), seed: int = 1,
+                  projector_size: tuple[int, int] = (1920, 1200), board_on_wall: bool = False,
+                  manifest_intrinsics: bool = True) -> dict:
+    """Render and write RAW/<scene>/...; returns the studio's ground truth per camera (raw resolution)."""
+    rig = make_rig(scale, seed=seed, projector_size=projector_size)
+    scene = make_scene(scene_name, rig)
+    studio = Studio(scene, rig, seed=seed)
+    rng = np.random.default_rng(seed)
+    out = root / scene_name
+    files = []
+
+    def shoot(cam: int, name: str, kind: str, N: float, shutter: float, focus_m: float, **extra) -> None:
+        e = studio.expose(cam, N, focus_m, shutter, 100, rng)
+        p = out / f"cam{cam}" / f"{name}.dng"
+        write_dual_pixel_dng(p, e.main, e.aux, e.black_level, e.white_level, e.wb_gains, e.metadata)
+        files.append(dict(path=p.relative_to(out).as_posix(), kind=kind, camera=f"cam{cam}", f_number=N,
+                          shutter_s=shutter, iso=100, size=p.stat().st_size, sha256=sha256_file(p), **extra))
+
+    focus_px = [studio.focus_point_px(c) for c in (0, 1)]
+    focus_m = [studio.focus_distance_m(c, focus_px[c]) for c in (0, 1)]
+    calib_studio = Studio(plane_scene(8.0), rig, seed=seed + 1)
+    for k, pose in enumerate(CHARUCO_POSES):
+        calib_studio.set_board_pose(pose)
+        for c in (0, 1):
+            e = calib_studio.expose(c, 22.0, focus_m[c], 1 / 4, 100, rng)
+            p = out / f"cam{c}" / f"charuco_{k}.dng"
+            write_dual_pixel_dng(p, e.main, e.aux, e.black_level, e.white_level, e.wb_gains, e.metadata)
+            files.append(dict(path=p.relative_to(out).as_posix(), kind="charuco", camera=f"cam{c}", f_number=22.0,
+                              shutter_s=0.25, iso=100, size=p.stat().st_size, sha256=sha256_file(p)))
+    if board_on_wall:
+        from dp5k_capture.sim.studio.scenes import wall_board_pose
+        studio.set_board_pose(wall_board_pose(scene, DEFAULT_BOARD.size_m))
+    Wp, Hp = projector_size
+    studio.set_projector_image(None)
+    for c in (0, 1):
+        for N in f_numbers:
+            shoot(c, f"dp_f{N:g}", "dp", N, 1 / 500 * (N / 1.8) ** 2, focus_m[c])
+        shoot(c, "sharp_f22", "sharp", 22.0, 1 / 4, focus_m[c])
+    for k in range(projection_count(Wp, Hp)):
+        studio.set_projector_image(projection(k, Wp, Hp))
+        for c in (0, 1):
+            shoot(c, f"sl_{k:02d}", "sl", 22.0, 1 / 4, focus_m[c], pattern=k)
+    studio.set_projector_image(None)
+    truth = {f"cam{c}": studio.ground_truth(c) for c in (0, 1)}
+    gt = out / "ground_truth"
+    gt.mkdir(parents=True, exist_ok=True)
+    for c in (0, 1):
+        np.save(gt / f"depth_cam{c}.npy", truth[f"cam{c}"]["depth_m"])
+    cams = []
+    for c, cm in enumerate(rig.cameras):
+        body = dict(id=cm.name, serial=cm.serial, model=cm.model, lens=cm.lens, sensor_size_mm=list(cm.sensor_size_mm),
+                    raw_size_px=[cm.width, cm.height], focus_point_px=list(focus_px[c]))
+        if manifest_intrinsics:
+            body.update(K=cm.K.tolist(), dist=cm.dist.tolist())
+        cams.append(body)
+    manifest = dict(format="dp5k-raw-session", version=1, scene=scene_name,
+                    rig=dict(cameras=cams, projector=dict(model="EPSON EB-U42", resolution=[Wp, Hp]), aux_view="left"),
+                    focus_point_px={f"cam{c}": list(focus_px[c]) for c in (0, 1)},
+                    focus_distance_true_m=focus_m, files=files, complete=True)
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    truth["focus_distance_m"] = focus_m
+    truth["focus_point_px"] = focus_px
+    return truth
