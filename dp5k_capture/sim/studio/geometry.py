@@ -47,6 +47,14 @@ class Quad:
     def _frame(self) -> tuple[Arr, Arr, Arr]:
         return _orthonormal(self.u_axis, self.v_axis)
 
+    def bounds(self) -> tuple[Arr, float] | None:
+        """Bounding sphere (centre, radius in m), or None when unbounded/huge (walls)."""
+        if not (np.isfinite(self.size_m[0]) and np.isfinite(self.size_m[1])) or max(self.size_m) > 3.0:
+            return None
+        u, v, _ = self._frame()
+        c = np.asarray(self.origin) + 0.5 * self.size_m[0] * u + 0.5 * self.size_m[1] * v
+        return c, 0.5 * float(np.hypot(*self.size_m))
+
     def intersect(self, o: Arr, d: Arr) -> Arr:
         u, v, n = self._frame()
         q = np.asarray(o, float) - np.asarray(self.origin)
@@ -73,6 +81,9 @@ class Box:
     half_m: Arr
     texture: TextureSpec = field(default_factory=TextureSpec)
     name: str = "box"
+
+    def bounds(self) -> tuple[Arr, float] | None:
+        return np.asarray(self.center, float), float(np.linalg.norm(self.half_m))
 
     def intersect(self, o: Arr, d: Arr) -> Arr:
         R = np.asarray(self.R)
@@ -118,6 +129,9 @@ class Sphere:
     texture: TextureSpec = field(default_factory=TextureSpec)
     name: str = "sphere"
 
+    def bounds(self) -> tuple[Arr, float] | None:
+        return np.asarray(self.center, float), float(self.radius_m)
+
     def intersect(self, o: Arr, d: Arr) -> Arr:
         oc = np.asarray(o, float) - np.asarray(self.center)
         b = d @ oc
@@ -146,6 +160,10 @@ class Cylinder:
     height_m: float
     texture: TextureSpec = field(default_factory=TextureSpec)
     name: str = "cylinder"
+
+    def bounds(self) -> tuple[Arr, float] | None:
+        c = np.asarray(self.base, float) - np.array([0.0, self.height_m / 2, 0.0])
+        return c, float(np.hypot(self.radius_m, self.height_m / 2))
 
     def intersect(self, o: Arr, d: Arr) -> Arr:
         base = np.asarray(self.base)
@@ -193,6 +211,20 @@ class Cylinder:
 Primitive = Quad | Box | Sphere | Cylinder
 
 
+def _cone_cull(prim, o: Arr, d: Arr) -> NDArray[np.int64] | None:
+    """Indices of the rays (all from ``o``) that can hit ``prim``'s bounding sphere, or None (test all)."""
+    b = prim.bounds() if hasattr(prim, "bounds") else None
+    if b is None:
+        return None
+    c, r = b
+    w = c - o
+    dist = float(np.linalg.norm(w))
+    if dist <= r * 1.001:
+        return None  # origin inside the bounding sphere
+    cos_lim = np.sqrt(1.0 - (r / dist) ** 2) - 1e-9
+    return np.nonzero(d @ (w / dist) >= cos_lim)[0]
+
+
 def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArray[np.int32]]:
     """Nearest hit of each ray over all primitives (all rays leave one point: a camera or the projector).
 
@@ -214,11 +246,19 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
         sl = slice(s, min(N, s + chunk))
         tb = t_best[sl]
         ib = idx[sl]
+        ds = d[sl]
         for k, prim in enumerate(prims):
-            t = prim.intersect(o, d[sl])
-            better = t < tb
-            tb[better] = t[better]
-            ib[better] = k
+            sub = _cone_cull(prim, o, ds)
+            if sub is None:
+                t = prim.intersect(o, ds)
+                better = t < tb
+                tb[better] = t[better]
+                ib[better] = k
+            elif sub.size:
+                t = prim.intersect(o, ds[sub])
+                better = t < tb[sub]
+                tb[sub[better]] = t[better]
+                ib[sub[better]] = k
     return t_best, idx
 
 

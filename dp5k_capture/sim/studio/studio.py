@@ -91,16 +91,17 @@ class Studio:
         rig: the :class:`~.rig.Rig`.
         effects: planted optical effects (None = ideal lens).
         seed: noise seed used when ``expose`` gets no ``rng``.
-        supersample: rays per pixel side for radiance (default 2).
+        supersample: rays per pixel side for radiance; default 2 for raw widths up to 800 px (small
+            rigs, where ChArUco bits are a few pixels wide), else 1.
         sensor: sensor constants.
     """
 
     def __init__(self, scene: Scene, rig: Rig, effects: EffectSet | None = None, seed: int = 0,
-                 supersample: int = 2, sensor: SensorModel = DEFAULT_SENSOR) -> None:
+                 supersample: int | None = None, sensor: SensorModel = DEFAULT_SENSOR) -> None:
         self.scene = scene
         self.rig = rig
         self.effects = effects or EffectSet()
-        self.supersample = int(supersample)
+        self.supersample = int(supersample) if supersample else (2 if rig.cameras[0].width <= 800 else 1)
         self.sensor = sensor
         self._rng = np.random.default_rng(seed)
         self._pattern: NDArray[np.float32] | None = None
