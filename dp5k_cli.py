@@ -69,6 +69,7 @@ def _register() -> None:
     from dp5k_capture.sim.studio.cli import studio_group; main.add_command(studio_group)  # noqa: E702
     from dp5k_capture.cli import capture_command, devices_command, verify_command; [main.add_command(c) for c in (capture_command, devices_command, verify_command)]  # noqa: E702
     from neural_dp.cli import evaluate_command, synthesize_command, train_command; [main.add_command(c) for c in (train_command, evaluate_command, synthesize_command)]  # noqa: E702
+    from dp5k_process.cli import process_command, validate_depth_command; [main.add_command(c) for c in (process_command, validate_depth_command)]  # noqa: E702
 
 
 _register()
