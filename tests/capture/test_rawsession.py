@@ -1,0 +1,123 @@
+"""Raw session layout: plan counts, atomic never-overwrite writes, resume bookkeeping, verify, disk full."""
+
+from __future__ import annotations
+
+import errno
+import json
+from pathlib import Path
+
+import pytest
+
+from dp5k_capture import rawsession
+from dp5k_capture.rawsession import CaptureStorageError, RawSessionWriter, plan_scene, verify_session
+from dp5k_capture.rig import RigConfig, load_rig
+from dp5k_common.errors import BadInputError
+
+
+def test_plan_has_the_papers_counts() -> None:
+    shots = plan_scene(RigConfig())
+    kinds = [s.kind for s in shots]
+    per_body = {k: kinds.count(k) for k in ("dp", "sharp", "charuco", "sl")}
+    assert per_body == {"dp": 5, "sharp": 1, "charuco": 3, "sl": 46}  # x2 bodies: 10 + 2 + 6 + 92
+    assert [s.stem for s in shots if s.kind == "dp"] == ["dp_f1.8", "dp_f2", "dp_f2.8", "dp_f4", "dp_f5.6"]
+    assert [s.stem for s in shots if s.kind == "sharp"] == ["sharp_f22"]
+    dp = [s for s in shots if s.kind == "dp"]
+    exposure = [s.shutter_s / s.f_number**2 for s in dp]  # constant exposure within 1/3 stop
+    assert max(exposure) / min(exposure) < 2 ** (1 / 3) + 1e-9
+
+
+def test_rig_toml(tmp_path: Path) -> None:
+    p = tmp_path / "rig.toml"
+    p.write_text('[[body]]\nid = "cam0"\nserial = "A1"\nfocus_point_px = [10, 20]\n[[body]]\nid = "cam1"\nserial = "B2"\n'
+                 '[projector]\nport = "/dev/ttyS9"\n[exposure]\niso = 200\n')
+    rig = load_rig(p)
+    assert rig.bodies[0].focus_point_px == (10, 20) and rig.projector.port == "/dev/ttyS9" and rig.exposure.iso == 200
+    p.write_text('[projector]\nprot = "x"\n')
+    with pytest.raises(BadInputError, match="unknown key 'prot'"):
+        load_rig(p)
+    p.write_text('[exposure]\ndp_f_numbers = [1.7]\n')
+    with pytest.raises(BadInputError, match="f/1.7"):
+        load_rig(p)
+
+
+def _writer(tmp_path: Path) -> tuple[RawSessionWriter, RigConfig]:
+    rig = RigConfig()
+    return RawSessionWriter(tmp_path, "s1", rig, "dng"), rig
+
+
+def test_files_are_recorded_and_never_overwritten(tmp_path: Path) -> None:
+    w, rig = _writer(tmp_path)
+    shot = plan_scene(rig)[3]
+    entry = w.add("cam0", shot, b"raw-bytes", {"camera_filename": "IMG_0001.DNG"})
+    assert entry["path"] == "cam0/dp_f1.8.dng" and entry["size"] == 9 and entry["f_number"] == 1.8
+    assert len(entry["sha256"]) == 64 and "timestamp" in entry
+    assert w.done("cam0", shot)
+    with pytest.raises(BadInputError, match="never overwritten"):
+        w.add("cam0", shot, b"other", {})
+    assert (tmp_path / "s1/cam0/dp_f1.8.dng").read_bytes() == b"raw-bytes"
+    assert not [p for p in (tmp_path / "s1/cam0").iterdir() if p.name.startswith(".")]  # no temp left
+    # a new writer (next run) sees the recorded file
+    w2 = RawSessionWriter(tmp_path, "s1", rig, "dng")
+    assert w2.done("cam0", shot)
+
+
+def test_orphan_file_from_a_crash_is_adopted_not_overwritten(tmp_path: Path) -> None:
+    w, rig = _writer(tmp_path)
+    shot = plan_scene(rig)[4]
+    (tmp_path / "s1/cam1").mkdir(parents=True)
+    (tmp_path / "s1/cam1/dp_f2.dng").write_bytes(b"completed before the crash")
+    entry = w.add("cam1", shot, b"new capture", {})
+    assert (tmp_path / "s1/cam1/dp_f2.dng").read_bytes() == b"completed before the crash"
+    assert entry["size"] == len(b"completed before the crash")
+
+
+def test_check_failure_leaves_nothing(tmp_path: Path) -> None:
+    w, rig = _writer(tmp_path)
+    shot = plan_scene(rig)[0]
+
+    def refuse(path: Path) -> None:
+        raise BadInputError("not DP", where=path)
+
+    with pytest.raises(BadInputError):
+        w.add("cam0", shot, b"x", {}, check=refuse)
+    assert not list((tmp_path / "s1/cam0").iterdir()) and not w.done("cam0", shot)
+
+
+def test_disk_full_keeps_completed_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    w, rig = _writer(tmp_path)
+    shots = plan_scene(rig)
+    w.add("cam0", shots[0], b"first", {})
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(rawsession.os, "fsync", full)
+    with pytest.raises(CaptureStorageError, match="disk full; completed files were kept") as err:
+        w.add("cam0", shots[1], b"second", {})
+    assert "cam0/charuco_1.dng" in str(err.value)
+    monkeypatch.undo()
+    assert sorted(p.name for p in (tmp_path / "s1/cam0").iterdir()) == ["charuco_0.dng"]
+    w2 = RawSessionWriter(tmp_path, "s1", rig, "dng")
+    assert w2.done("cam0", shots[0]) and not w2.done("cam0", shots[1])
+
+
+def test_verify_finds_tampering_and_gaps(tmp_path: Path) -> None:
+    w, rig = _writer(tmp_path)
+    for s in plan_scene(rig):
+        for b in ("cam0", "cam1"):
+            w.add(b, s, f"{b}/{s.stem}".encode(), {})
+    w.set_focus_point("cam0", (1, 2))
+    w.set_focus_point("cam1", (3, 4))
+    w.finish(rig)
+    assert json.loads((tmp_path / "s1/manifest.json").read_text())["complete"] is True
+    rep = verify_session(tmp_path / "s1", check_dual_pixel=False)
+    assert rep.problems == [] and rep.counts == {"charuco": 6, "dp": 10, "sharp": 2, "sl": 92}
+    (tmp_path / "s1/cam1/sl_07.dng").write_bytes(b"cam1/sl_08")  # same size, other bytes
+    (tmp_path / "s1/cam0/dp_f2.dng").unlink()
+    rep = verify_session(tmp_path / "s1", check_dual_pixel=False)
+    assert "cam1/sl_07.dng: SHA-256 mismatch" in rep.problems and "cam0/dp_f2.dng: missing" in rep.problems
+    assert "sl: 91 verified files, expected 92" in rep.problems
+    with pytest.raises(BadInputError, match="already captured and complete"):
+        RawSessionWriter(tmp_path, "s1", rig, "dng")
+    with pytest.raises(BadInputError, match="scene name"):
+        RawSessionWriter(tmp_path, "../evil", rig, "dng")
