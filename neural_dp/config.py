@@ -98,7 +98,8 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
             return float(value)
         return str(value)
     except (TypeError, ValueError):
-        raise BadInputError(f"'{key}' must be a {type(current).__name__}, got {value!r}", where="config") from None
+        kind = {int: "an integer", float: "a number"}.get(type(current), "a string")
+        raise BadInputError(f"'{key}' must be {kind}, got {value!r}", where="config") from None
 
 
 def _apply(obj: Any, updates: dict[str, Any], prefix: str = "") -> Any:

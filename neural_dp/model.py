@@ -46,8 +46,9 @@ class ModelConfig:
     """The CoC input channel is ``coc_px / coc_scale_px``."""
     tile_px: int = 512
     """Inference tile side (bounds memory at full resolution); 0 disables tiling."""
-    tile_margin_px: int = 32
-    """Context added around each inference tile and discarded after."""
+    tile_margin_px: int = 96
+    """Context added around each inference tile and discarded after (>= the U-Net's reach, about 94 px at
+    4 levels, makes tiled output equal the whole-image output)."""
 
 
 def _norm(kind: str, ch: int) -> nn.Module:

@@ -151,6 +151,8 @@ def load_frame(folder: Path, encoding: str = "srgb", depth_scale: float = 1.0) -
     fx, fy = float(intr["fx"]), float(intr["fy"])
     if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):
         raise BadInputError(f"fx, fy must be positive, got {fx}, {fy}", where=ipath)
+    # the dataset stores whole millimetres (uint16); compute everything from the stored depth
+    depth = np.clip(np.rint(depth), 0, 65535).astype(np.float32)
     if not (depth > 0).any():
         raise BadInputError("no valid depth", where=folder)
     return Frame(folder.name, img01.astype(np.float32), depth, fx, fy)

@@ -45,8 +45,8 @@ class PSFShape:
         coc_px: (K,) signed CoC diameter of each node, px (sign picks the half: left half for coc > 0).
         scale: multiplies the disc diameter (1 = thin-lens).
         softness_px: width of the rim's linear ramp, px (0 = hard edge, antialiased on a 4x grid).
-        profile: radial weight ``1 + profile * (2 (rho/R)^2 - 1)`` (0 = uniform disc, > 0 brighter rim,
-            < 0 brighter centre); mean-preserving over the disc.
+        rim2, rim4: radial weight ``1 + rim2 (rho/R)^2 + rim4 (rho/R)^4`` (0 = uniform disc, > 0 brighter
+            rim, < 0 brighter centre), clipped at 0; the PSF is renormalised.
         split: weight of the half-aperture split: the left PSF is ``disc * ((1 - split)/2 + split * half)``,
             so the L/R centroid separation is ``split`` times the ideal 4c/(3 pi) (1 = ideal hard split).
     """
@@ -54,7 +54,8 @@ class PSFShape:
     coc_px: Tensor
     scale: Tensor
     softness_px: Tensor
-    profile: Tensor
+    rim2: Tensor
+    rim4: Tensor
     split: Tensor
 
 
@@ -69,8 +70,8 @@ class RenderConfig:
         chunk: pairs rendered at once (memory bound).
     """
 
-    node_step_px: float = 0.5
-    max_nodes: int = 40
+    node_step_px: float = 1.0
+    max_nodes: int = 32
     supersample: int = 4
     chunk: int = 4
 
@@ -97,8 +98,8 @@ class Component(torch.nn.Module):
         self.bounds: dict[str, tuple[float, float]] = {}
         self.steps: dict[str, float] = {}
 
-    def coc(self, coc_px: Tensor, batch: DPBatch) -> Tensor:
-        """(B, 1 or 3, H, W) signed CoC per colour channel, px. Default: unchanged."""
+    def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
+        """(B, 1 or 3, H, W) signed CoC per colour channel, px (``field`` (B, 2, H, W)). Default: unchanged."""
         return coc_px
 
     def sharp(self, sharp: Tensor, batch: DPBatch) -> Tensor:
@@ -148,7 +149,7 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
 
     .. math::
         D(\rho) = \mathrm{clip}((R - \rho)/w + 1/2, 0, 1), \quad w = \max(\text{softness}, 1/ss)
-        P(\rho) = 1 + \beta (2 \rho^2 / R^2 - 1)
+        P(\rho) = \max(0, 1 + a_2 (\rho/R)^2 + a_4 (\rho/R)^4)
         S(x) = (1 - k)/2 + k [x \cdot \mathrm{sign}(c) < 0]
         H_l = \mathrm{pool}(D P S) / \sum D P S
 
@@ -158,11 +159,11 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     coc = shape.coc_px
     K = coc.shape[0]
     dev = coc.device
-    scale = shape.scale.expand(K) if shape.scale.ndim else shape.scale.expand(K)
-    soft = shape.softness_px.reshape(-1).expand(K) if shape.softness_px.numel() == 1 else shape.softness_px
-    prof = shape.profile.reshape(-1).expand(K) if shape.profile.numel() == 1 else shape.profile
-    split = shape.split.reshape(-1).expand(K) if shape.split.numel() == 1 else shape.split
-    scale = shape.scale.reshape(-1).expand(K) if shape.scale.numel() == 1 else shape.scale
+
+    def per_node(t: Tensor) -> Tensor:
+        return t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)
+
+    soft, rim2, rim4, split, scale = (per_node(t) for t in (shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.scale))
     R = (coc.abs() * scale / 2).clamp(min=0.3)  # (K,) px
     width = soft.clamp(min=1.0 / supersample)
     half = int(math.ceil(float((R + width).max()) + 1))
@@ -173,7 +174,8 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     rho = torch.sqrt(fx**2 + fy**2)[None]  # (1, N, N)
     Rk = R[:, None, None]
     disc = ((Rk - rho) / width[:, None, None] + 0.5).clamp(0.0, 1.0)
-    prof_w = (1.0 + prof[:, None, None] * (2.0 * (rho / Rk) ** 2 - 1.0)).clamp(min=0.0)
+    q = (rho / Rk) ** 2
+    prof_w = (1.0 + rim2[:, None, None] * q + rim4[:, None, None] * q * q).clamp(min=0.0)
     sign = torch.where(coc >= 0, 1.0, -1.0)[:, None, None]
     left_half = (fx[None] * sign < 0).float()
     sk = split[:, None, None]
@@ -303,7 +305,8 @@ class BaseModel(DPSimulator):
             coc_px=nodes,
             scale=one,
             softness_px=one * self.params["rim_softness_px"],
-            profile=one * 0.0,
+            rim2=one * 0.0,
+            rim4=one * 0.0,
             split=one,
         )
         for c in self.components:
@@ -332,7 +335,7 @@ class BaseModel(DPSimulator):
         coc = batch.coc_px.float()
         sharp = batch.sharp.float()
         for c in self.components:
-            coc = c.coc(coc, batch)
+            coc = c.coc(coc, batch, field)
             sharp = c.sharp(sharp, batch)
         valid = batch.valid
         if any(c.field_dependent and c.changes_psf for c in self.components):

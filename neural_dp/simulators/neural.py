@@ -22,8 +22,8 @@ def model_inputs(batch: DPBatch, coc_scale_px: float) -> Tensor:
     return torch.cat([batch.sharp, coc, normalize_depth(batch.depth_mm, batch.valid)], dim=1)
 
 
-def _tiles(n: int, tile: int) -> list[int]:
-    return list(range(0, max(n - tile, 0) + 1, tile)) + ([n - tile] if n > tile and (n - tile) % tile else [])
+def _spans(n: int, tile: int) -> list[tuple[int, int]]:
+    return [(s, min(s + tile, n)) for s in range(0, n, tile)]
 
 
 class NeuralDPSimulator(DPSimulator):
@@ -71,17 +71,23 @@ class NeuralDPSimulator(DPSimulator):
         return self._forward_tiled(batch.sharp, inputs, tile, self.cfg.tile_margin_px)
 
     def _forward_tiled(self, sharp: Tensor, inputs: Tensor, tile: int, margin: int) -> tuple[Tensor, Tensor]:
-        """Predict tile by tile with ``margin`` px of context; peak memory is set by the tile, not the image."""
+        """Predict tile by tile with ``margin`` px of context; peak memory is set by the tile, not the image.
+
+        Tile origins and margins are multiples of the U-Net's down-sampling factor, so every tile sees the
+        same pooling grid as the whole image; with a margin beyond the network's reach (and BatchNorm in
+        eval mode, which is local) the stitched result equals the whole-image result.
+        """
+        m = self.net.multiple
+        tile = max(m, tile // m * m)
+        margin = -(-margin // m) * m
         H, W = sharp.shape[-2:]
         left = torch.empty_like(sharp)
         right = torch.empty_like(sharp)
-        th, tw = min(tile, H), min(tile, W)
-        for y0 in _tiles(H, th):
-            for x0 in _tiles(W, tw):
-                ya, yb = max(0, y0 - margin), min(H, y0 + th + margin)
-                xa, xb = max(0, x0 - margin), min(W, x0 + tw + margin)
+        for y0, y1 in _spans(H, tile):
+            for x0, x1 in _spans(W, tile):
+                ya, yb = max(0, y0 - margin), min(H, y1 + margin)
+                xa, xb = max(0, x0 - margin), min(W, x1 + margin)
                 l, r = self.net(sharp[..., ya:yb, xa:xb], inputs[..., ya:yb, xa:xb])
-                sy, sx = y0 - ya, x0 - xa
-                left[..., y0 : y0 + th, x0 : x0 + tw] = l[..., sy : sy + th, sx : sx + tw]
-                right[..., y0 : y0 + th, x0 : x0 + tw] = r[..., sy : sy + th, sx : sx + tw]
+                left[..., y0:y1, x0:x1] = l[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+                right[..., y0:y1, x0:x1] = r[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
         return left, right
