@@ -159,9 +159,7 @@ class SimulatedEOS:
 
     # ------------------------------------------------------------------ helpers
     def device_info(self) -> DeviceInfo:
-        ops = sorted(
-            {int(o) for o in Op if o not in (Op.INITIATE_CAPTURE, Op.SET_DEVICE_PROP_VALUE)}
-        )
+        ops = sorted({int(o) for o in Op if o not in (Op.INITIATE_CAPTURE, Op.SET_DEVICE_PROP_VALUE)} | {0x9108})
         return DeviceInfo(
             standard_version=100, vendor_extension_id=self.vendor_extension_id, vendor_extension_version=100,
             vendor_extension_desc="", functional_mode=0, operations=ops,
@@ -342,6 +340,13 @@ class SimulatedEOS:
             self.props[EosProp.AVAILABLE_SHOTS] = 900
             self._queue_prop(EosProp.AVAILABLE_SHOTS)
         return Reply(Resp.OK)
+
+    def _op_9108(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """GetDeviceInfoEx: u32 size, then u32-count arrays of events, properties and an unknown list."""
+        events = [int(e) for e in EosEvent]
+        props = sorted(int(k) for k in self.props) + [int(EosProp.IMAGE_FORMAT)]
+        body = Writer().array(4, events).array(4, props).array(4, []).bytes()
+        return Reply(Resp.OK, data=struct.pack("<I", 4 + len(body)) + body)
 
     def _op_9114(self, p: tuple[int, ...], data: bytes | None) -> Reply:
         self.remote_mode = p[0]
