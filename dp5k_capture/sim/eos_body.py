@@ -164,7 +164,7 @@ class SimulatedEOS:
             standard_version=100, vendor_extension_id=self.vendor_extension_id, vendor_extension_version=100,
             vendor_extension_desc="", functional_mode=0, operations=ops,
             events=[0x4002, 0x4006, 0x400D, 0xC101],
-            properties=[0x5001] + sorted(int(p) for p in EosProp),
+            properties=[0x5001],  # EOS properties (0xD1xx) are listed by GetDeviceInfoEx only, as on real bodies
             capture_formats=[OFC_DNG], image_formats=[OFC_DNG, 0x3801],
             manufacturer="Canon Inc.", model=self.MODEL, device_version="1-1.2.0", serial_number=self.serial.rjust(32, "0"),
         )

@@ -50,6 +50,10 @@ def test_libgphoto2_captures_from_the_simulated_body(tmp_path: Path) -> None:
             w = cfg.get_child_by_name(name)
             vals = [w.get_choice(i) for i in range(w.count_choices())]
             assert (vals[0], vals[-1]) == (first, last), (name, vals)
+        for name, value in (("aperture", "2.8"), ("iso", "100"), ("shutterspeed", "1/60")):
+            w = cam.get_single_config(name)
+            w.set_value(value)
+            cam.set_single_config(name, w)
         path = cam.capture(gp.GP_CAPTURE_IMAGE)
         cfile = cam.file_get(path.folder, path.name, gp.GP_FILE_TYPE_NORMAL)
         data = bytes(cfile.get_data_and_size())
@@ -60,6 +64,11 @@ def test_libgphoto2_captures_from_the_simulated_body(tmp_path: Path) -> None:
         (tmp_path / "got.dng").write_bytes(data)
         with rawpy.imread(str(tmp_path / "got.dng")) as r:  # the downloaded file is a raw LibRaw opens
             assert r.raw_image_visible.shape == (64, 96)
+        import tifffile
+
+        with tifffile.TiffFile(tmp_path / "got.dng") as tf:  # the body exposed at what libgphoto2 set
+            meta = json.loads(tf.pages[0].description)
+        assert (meta["f_number"], meta["iso"], meta["shutter_s"]) == (2.8, 100, pytest.approx(1 / 60))
         ops = [int(x, 16) for x in (tmp_path / "ops.txt").read_text().split()]
         assert ops[:3] == [0x1002, 0x1001, 0x9114]  # libgphoto2's order: OpenSession, GetDeviceInfo, SetRemoteMode
         for op in (0x9115, 0x9116, 0x9110, 0x911A, 0x9128, 0x9129, 0x101B, 0x9117, 0x9160):
