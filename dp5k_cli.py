@@ -70,6 +70,9 @@ def _register() -> None:
     from dp5k_capture.cli import capture_command, devices_command, verify_command; [main.add_command(c) for c in (capture_command, devices_command, verify_command)]  # noqa: E702
     from neural_dp.cli import evaluate_command, synthesize_command, train_command; [main.add_command(c) for c in (train_command, evaluate_command, synthesize_command)]  # noqa: E702
     from dp5k_process.cli import process_command, validate_depth_command; [main.add_command(c) for c in (process_command, validate_depth_command)]  # noqa: E702
+    from dp5k_diagnose.cli import diagnose_command, import_command; [main.add_command(c) for c in (diagnose_command, import_command)]  # noqa: E702
+
+    from dp5k_demo.cli import demo_command; main.add_command(demo_command)  # noqa: E702
 
 
 _register()

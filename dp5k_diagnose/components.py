@@ -2,27 +2,32 @@
 
 Each component is a small physical extension of :class:`neural_dp.simulators.base.BaseModel` with a few
 parameters that :func:`neural_dp.simulators.base.fit_parameters` fits on training pairs. Parameter names
-carry units; the sign conventions are those of docs/conventions.md.
+carry units and follow the physical definitions of docs/studio.md, so fitted values compare with planted
+ones; field coordinates ``x, y`` are in [-1, 1], ``r^2 = (x^2 + y^2) / 2`` (corner = 1).
 
 ===================== ================================================================================
 effect                model change (parameters)
 ===================== ================================================================================
-lr_gain_imbalance     left *= exp(q/2), right *= exp(-q/2), q = a0 + ax x + ay y + axx x^2 + ayy y^2
-                      (``gain_ratio`` = exp(a0), the L/R ratio at the centre; field coords in [-1, 1])
-field_varying_psf     disc diameter x (1 + ``coc_scale_r2`` r^2) and split x (1 + ``split_r2`` r^2),
-                      r = field radius (corner = 1)
-chromatic_defocus     per-channel CoC offset: c_R = c + ``coc_offset_r_px``, c_B = c + ``coc_offset_b_px``
-disparity_scale       split weight ``disparity_scale`` (L/R centroid separation / ideal)
+lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2; left x 2 rho/(1+rho),
+                      right x 2/(1+rho) (``lr_ratio_center`` = exp(a0))
+field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
+                      receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right
+chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
+                      with the sensor set for green (per-channel CoC from the depth map)
+disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
+                      ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one)
 focus_offset          CoC recomputed (Eq. 6) at focus distance F + ``focus_offset_mm``
-psf_profile           radial weight 1 + ``profile`` (2 rho^2/R^2 - 1) (> 0 brighter rim, < 0 brighter centre)
-front_back_asymmetry  diameter x ``front_scale`` and profile ``front_profile`` for c < 0 only
+psf_profile           radial weight 1 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright centre)
+front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
+                      (1 - (rho/R)^2) and diameter x ``front_size_factor``
 misregistration       each view shifted by (``left_dx_px``, ``left_dy_px``), (``right_dx_px``, ``right_dy_px``)
-noise                 the sharp input is denoised with a Gaussian of ``input_blur_sigma_px``; the views'
-                      white noise (``noise_sigma``, linear units) is estimated from the residual
+noise                 signal-dependent white noise var = ``shot_var`` I + ``read_sigma``^2 in the views
+                      (estimated from the residual; the prediction itself, an expectation, is unchanged)
 ===================== ================================================================================
 """
-
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -49,89 +54,113 @@ class LRGainImbalance(Component):
         self.steps = {k: 0.01 for k in self.KEYS}
 
     def log_ratio(self, field: Tensor) -> Tensor:
+        """(B, 1, H, W) ln(L/R gain ratio) at field coordinates (B, 2, H, W)."""
         x, y = field[:, :1], field[:, 1:2]
         p = self.params
         return p["a0"] + p["ax"] * x + p["ay"] * y + p["axx"] * x * x + p["ayy"] * y * y
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
-        q = self.log_ratio(field)
-        return left * torch.exp(q / 2), right * torch.exp(-q / 2)
+        rho = torch.exp(self.log_ratio(field))
+        return left * (2 * rho / (1 + rho)), right * (2 / (1 + rho))
 
     def describe(self) -> dict[str, float]:
         p = dict(self.params)
         xs = torch.linspace(-1, 1, 9)
         f = torch.stack(torch.meshgrid(xs, xs, indexing="xy"))[None]
-        q = self.log_ratio(f)
-        p["gain_ratio"] = float(np.exp(self.params["a0"]))
-        p["gain_ratio_mean"] = float(torch.exp(q).mean())
-        p["gain_ratio_min"] = float(torch.exp(q).min())
-        p["gain_ratio_max"] = float(torch.exp(q).max())
+        rho = torch.exp(self.log_ratio(f))
+        p["lr_ratio_center"] = float(np.exp(self.params["a0"]))
+        p["lr_ratio_mean"] = float(rho.mean())
+        p["lr_ratio_min"] = float(rho.min())
+        p["lr_ratio_max"] = float(rho.max())
         return p
+
+
+def crosstalk(left: Tensor, right: Tensor, k_rl: Tensor | float, k_lr: Tensor | float) -> tuple[Tensor, Tensor]:
+    """Move a fraction ``k_rl`` of R's light to L and ``k_lr`` of L's to R (keeps L + R)."""
+    return left * (1 - k_lr) + right * k_rl, right * (1 - k_rl) + left * k_lr
 
 
 class FieldVaryingPSF(Component):
-    """PSF size and L/R split change with the field radius (off-axis vignetting of the half apertures)."""
+    """Blur grows off axis and the split softens toward the field edges (half-moons become ellipses)."""
 
     name = "field_varying_psf"
-    field_dependent = True
-    changes_psf = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"coc_scale_r2": 0.0, "split_r2": 0.0}
+        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0}
         self.fit_names = list(self.params)
-        self.bounds = {"coc_scale_r2": (-0.9, 3.0), "split_r2": (-1.0, 1.5)}
-        self.steps = {"coc_scale_r2": 0.05, "split_r2": 0.05}
+        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5)}
+        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02}
 
-    def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
-        return PSFShape(
-            shape.coc_px,
-            shape.scale * (1.0 + self.params["coc_scale_r2"] * field_r2),
-            shape.softness_px,
-            shape.profile,
-            shape.split * (1.0 + self.params["split_r2"] * field_r2),
-        )
+    def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
+        return coc_px * (1.0 + self.params["coc_growth_at_corner"] * field_r2(field))
 
-    def describe(self) -> dict[str, float]:
-        p = dict(self.params)
-        p["coc_scale_at_corner"] = 1.0 + p["coc_scale_r2"]
-        p["disparity_scale_at_corner"] = 1.0 + p["split_r2"]
-        return p
+    def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
+        x = field[:, :1]
+        b = self.params["edge_leak"]
+        return crosstalk(left, right, b * (-x).clamp(min=0), b * x.clamp(min=0))
 
 
 class ChromaticDefocus(Component):
-    """Longitudinal chromatic aberration: red and blue focus elsewhere than green (CoC offset per channel)."""
+    """Longitudinal chromatic aberration: red and blue have their own focal length (sensor set for green)."""
 
     name = "chromatic_defocus"
-    channel_dependent = True
+    KEYS = ("focal_shift_r_mm", "focal_shift_b_mm")
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"coc_offset_r_px": 0.0, "coc_offset_b_px": 0.0}
-        self.fit_names = list(self.params)
-        self.bounds = {k: (-20.0, 20.0) for k in self.params}
-        self.steps = {k: 0.25 for k in self.params}
+        self.params = {k: 0.0 for k in self.KEYS}
+        self.fit_names = list(self.KEYS)
+        self.bounds = {k: (-2.0, 2.0) for k in self.KEYS}
+        self.steps = {k: 0.01 for k in self.KEYS}
 
-    def coc(self, coc_px: Tensor, batch: DPBatch) -> Tensor:
+    @staticmethod
+    def coc_shift_px(batch: DPBatch, focal_shift_mm: float) -> Tensor:
+        r"""(B, 1, H, W) change of the signed CoC (px) when the focal length is ``f + focal_shift_mm``.
+
+        Thin lens with the sensor at :math:`v = 1/(1/f - 1/F)`: :math:`C_c = (f/N)(v - v_c)/v_c`,
+        :math:`v_c = 1/(1/f_c - 1/z)`; for :math:`f_c = f` this is Eq. 6.
+        """
+        z = batch.depth_mm.double()
+        f = batch.focal_length_mm.double().view(-1, 1, 1, 1)
+        Fd = batch.focus_distance_mm.double().view(-1, 1, 1, 1)
+        N = batch.f_number.double().view(-1, 1, 1, 1)
+        pitch = batch.pixel_pitch_mm.double().view(-1, 1, 1, 1)
+        zz = torch.where(batch.valid, z, Fd.expand_as(z))
+        v = 1.0 / (1.0 / f - 1.0 / Fd)
+
+        def coc(fc: Tensor) -> Tensor:
+            vz = 1.0 / (1.0 / fc - 1.0 / zz)
+            return (f / N) * (v - vz) / vz / pitch
+
+        d = coc(f + focal_shift_mm) - coc(f)
+        return torch.where(batch.valid, d, torch.zeros_like(d)).float()
+
+    def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         c = coc_px[:, :1]
-        return torch.cat([c + self.params["coc_offset_r_px"], c, c + self.params["coc_offset_b_px"]], dim=1)
+        return torch.cat([c + self.coc_shift_px(batch, self.params["focal_shift_r_mm"]), c,
+                          c + self.coc_shift_px(batch, self.params["focal_shift_b_mm"])], dim=1)
 
 
 class DisparityScale(Component):
-    """Soft L/R split (sub-pixel crosstalk): disparity is a fraction of the ideal half-aperture one."""
+    """Symmetric photodiode crosstalk: disparity is a fraction of the ideal half-aperture one, L + R kept."""
 
     name = "disparity_scale"
-    changes_psf = True
+    post_only = True
 
     def __init__(self) -> None:
         super().__init__()
         self.params = {"disparity_scale": 1.0}
         self.fit_names = ["disparity_scale"]
-        self.bounds = {"disparity_scale": (0.0, 2.0)}
+        self.bounds = {"disparity_scale": (-0.5, 2.0)}
         self.steps = {"disparity_scale": 0.05}
 
-    def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
-        return PSFShape(shape.coc_px, shape.scale, shape.softness_px, shape.profile, shape.split * self.params["disparity_scale"])
+    def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
+        k = (1.0 - self.params["disparity_scale"]) / 2.0
+        return crosstalk(left, right, k, k)
+
+    def describe(self) -> dict[str, float]:
+        return {**self.params, "crosstalk": (1.0 - self.params["disparity_scale"]) / 2.0}
 
 
 class FocusOffset(Component):
@@ -145,14 +174,16 @@ class FocusOffset(Component):
         self.fit_names = ["focus_offset_mm"]
         self.bounds = {"focus_offset_mm": (-1e6, 1e6)}
         self.steps = {"focus_offset_mm": 10.0}
+        self.mean_focus_mm = float("nan")
 
     def initial_guess(self, model, batch: DPBatch, field: Tensor) -> None:
         """Scale the finite-difference step and bounds to the focus distances in the data."""
         F_mm = float(batch.focus_distance_mm.mean())
+        self.mean_focus_mm = F_mm
         self.steps["focus_offset_mm"] = 0.01 * F_mm
         self.bounds["focus_offset_mm"] = (-0.5 * F_mm, 0.5 * F_mm)
 
-    def coc(self, coc_px: Tensor, batch: DPBatch) -> Tensor:
+    def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         off = self.params["focus_offset_mm"]
         if off == 0.0:
             return coc_px
@@ -168,42 +199,52 @@ class FocusOffset(Component):
         new = torch.where(batch.valid, new, coc_px[:, :1])
         return new.expand_as(coc_px) if coc_px.shape[1] > 1 else new
 
+    def describe(self) -> dict[str, float]:
+        p = dict(self.params)
+        if np.isfinite(self.mean_focus_mm):
+            p["focus_factor"] = 1.0 + p["focus_offset_mm"] / self.mean_focus_mm
+        return p
+
 
 class PSFProfile(Component):
-    """The disc is not uniform: brighter rim (> 0, e.g. Butterworth ring) or brighter centre (< 0)."""
+    """The disc is not uniform: weight 1 + rim_gain (rho/R)^4 (bright rim, "soap bubble"; < 0 bright centre)."""
 
     name = "psf_profile"
     changes_psf = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"profile": 0.0}
-        self.fit_names = ["profile"]
-        self.bounds = {"profile": (-1.0, 1.0)}
-        self.steps = {"profile": 0.1}
+        self.params = {"rim_gain": 0.0}
+        self.fit_names = ["rim_gain"]
+        self.bounds = {"rim_gain": (-0.95, 10.0)}
+        self.steps = {"rim_gain": 0.2}
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
-        return PSFShape(shape.coc_px, shape.scale, shape.softness_px, shape.profile + self.params["profile"], shape.split)
+        return replace(shape, rim4=shape.rim4 + self.params["rim_gain"])
 
 
 class FrontBackAsymmetry(Component):
-    """Blur in front of focus differs from blur behind it (spherical aberration): size and profile."""
+    """Spherical-aberration-like: rim-heavy blur behind focus, centre-heavy and larger blur in front."""
 
     name = "front_back_asymmetry"
     changes_psf = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"front_scale": 1.0, "front_profile": 0.0}
+        self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0}
         self.fit_names = list(self.params)
-        self.bounds = {"front_scale": (0.2, 3.0), "front_profile": (-1.0, 1.0)}
-        self.steps = {"front_scale": 0.05, "front_profile": 0.1}
+        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (-0.45, 6.0), "front_size_factor": (0.5, 2.0)}
+        self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03}
+
+    def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
+        return torch.where(coc_px < 0, coc_px * self.params["front_size_factor"], coc_px)
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
         front = (shape.coc_px < 0).float()
-        scale = shape.scale * (1.0 + front * (self.params["front_scale"] - 1.0))
-        profile = shape.profile + front * self.params["front_profile"]
-        return PSFShape(shape.coc_px, scale, shape.softness_px, profile, shape.split)
+        g = self.params["front_center_gain"]
+        # 1 + g (1 - q) is proportional to 1 - g/(1+g) q
+        a2 = (1 - front) * self.params["back_rim_gain"] + front * (-g / (1 + g))
+        return replace(shape, rim2=shape.rim2 + a2)
 
 
 def shift_image(img: Tensor, dx_px: float, dy_px: float) -> Tensor:
@@ -247,8 +288,8 @@ class Misregistration(Component):
 
     def describe(self) -> dict[str, float]:
         p = dict(self.params)
-        p["shift_dx_px"] = p["right_dx_px"] - p["left_dx_px"]
-        p["shift_dy_px"] = p["right_dy_px"] - p["left_dy_px"]
+        p["shift_px"] = [(p["left_dx_px"] + p["right_dx_px"]) / 2, (p["left_dy_px"] + p["right_dy_px"]) / 2]
+        p["lr_shift_px"] = [p["right_dx_px"] - p["left_dx_px"], p["right_dy_px"] - p["left_dy_px"]]
         return p
 
 
@@ -294,23 +335,24 @@ def gaussian_blur(img: Tensor, sigma_px: float) -> Tensor:
 
 
 class Noise(Component):
-    """Sensor noise: the views carry white noise the model does not predict; a noisy sharp input is denoised."""
+    """Sensor noise in the views: white, signal dependent, var = shot_var * I + read_sigma^2 (linear units).
+
+    A simulator's prediction is the noise-free expectation, so the component leaves the views unchanged;
+    its parameters (estimated from the residual by :func:`dp5k_diagnose.detect.test_noise`) let a
+    simulator add calibrated noise when it synthesises data.
+    """
 
     name = "noise"
+    post_only = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"input_blur_sigma_px": 0.0}
-        self.fit_names = ["input_blur_sigma_px"]
-        self.bounds = {"input_blur_sigma_px": (0.0, 2.0)}
-        self.steps = {"input_blur_sigma_px": 0.15}
-        self.estimates: dict[str, float] = {}
+        self.params = {"shot_var": 0.0, "read_sigma": 0.0}
 
-    def sharp(self, sharp: Tensor, batch: DPBatch) -> Tensor:
-        return gaussian_blur(sharp, self.params["input_blur_sigma_px"])
-
-    def describe(self) -> dict[str, float]:
-        return {**self.params, **self.estimates}
+    def sample(self, view: Tensor, rng: torch.Generator | None = None) -> Tensor:
+        """A noisy sample of a (B, 3, H, W) view under the fitted noise model."""
+        var = self.params["shot_var"] * view.clamp(min=0) + self.params["read_sigma"] ** 2
+        return view + torch.randn(view.shape, generator=rng, device=view.device) * var.sqrt()
 
 
 COMPONENTS: dict[str, type[Component]] = {

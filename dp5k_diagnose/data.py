@@ -28,6 +28,24 @@ class Sample:
     field: Tensor
 
 
+def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:
+    """(origin (x0, y0), full frame size (W, H)) of a pair inside its camera frame.
+
+    Imported tiles record ``crop_origin_px`` and ``full_image_size`` in params.json (geometry, not effect
+    metadata); otherwise the pair is the whole frame.
+    """
+    W, H = p.params.image_size
+    ex = p.params.extra
+    try:
+        o = ex.get("crop_origin_px")
+        fs = ex.get("full_image_size")
+        if o is not None and fs is not None:
+            return (int(o[0]), int(o[1])), (int(fs[0]), int(fs[1]))
+    except (TypeError, ValueError, IndexError):
+        pass
+    return (0, 0), (W, H)
+
+
 def load_pairs(reader: DatasetReader, ids: Sequence[str]) -> list[Pair]:
     return [reader.load(pid) for pid in ids]
 
@@ -42,7 +60,8 @@ def full_samples(pairs: Sequence[Pair], device: str = "cpu", per_batch: int = 4)
         for i in range(0, len(ps), per_batch):
             chunk = ps[i : i + per_batch]
             b = DPBatch.from_pairs(chunk, device)
-            out.append(Sample(b, field_coords(len(chunk), H, W, device)))
+            fields = [field_coords(1, H, W, device, *frame_geometry(p)) for p in chunk]
+            out.append(Sample(b, torch.cat(fields)))
     return out
 
 
@@ -58,11 +77,12 @@ def crop_samples(
         W, H = p.params.image_size
         ch, cw = min(crop, H), min(crop, W)
         b = DPBatch.from_pairs([p], device)
+        (ox, oy), full = frame_geometry(p)
         n = 1 if (ch == H and cw == W) else crops_per_pair
         for _ in range(n):
             y0 = int(rng.integers(0, H - ch + 1))
             x0 = int(rng.integers(0, W - cw + 1))
-            items.append((b.crop(y0, x0, ch, cw), field_coords(1, ch, cw, device, (x0, y0), (W, H))))
+            items.append((b.crop(y0, x0, ch, cw), field_coords(1, ch, cw, device, (ox + x0, oy + y0), full)))
     groups: dict[tuple[int, int], list[tuple[DPBatch, Tensor]]] = defaultdict(list)
     for b, f in items:
         groups[tuple(b.sharp.shape[-2:])].append((b, f))

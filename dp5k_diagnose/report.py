@@ -1,0 +1,149 @@
+"""Write ``report.json`` and ``report.md`` (with PNG figures) of a diagnosis, atomically."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from dp5k_common.io import atomic_path, write_json_atomic  # noqa: E402
+
+
+def _save(fig: Any, path: Path) -> str:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, bbox_inches="tight", format="png")
+    plt.close(fig)
+    return path.name
+
+
+def plot_residuals(tables: dict[str, Any], path: Path, title: str) -> str:
+    names = [k for k in tables if k != "channel"]
+    fig, axes = plt.subplots(2, (len(names) + 2) // 2, figsize=(16, 6.5))
+    for ax, name in zip(axes.flat, names + ["channel"]):
+        t = tables[name]
+        xs = np.arange(3) if name == "channel" else np.asarray(t["bin_center"], float)
+        for col in ("L", "R", "L+R", "L-R"):
+            if col in t and len(t[col]):
+                ax.plot(xs, t[col], marker="o", ms=3, label=col)
+        if name == "channel":
+            ax.set_xticks(xs, t["bin_center"])
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(names) + 1 :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle(title + ": mean |prediction - measurement| per bin", fontsize=10)
+    return _save(fig, path)
+
+
+def plot_disparity(disp: dict[str, Any], path: Path, title: str) -> str:
+    fig, ax = plt.subplots(figsize=(5, 4))
+    c = np.asarray(disp["coc_px"]); m = np.asarray(disp["measured_px"]); p = np.asarray(disp["predicted_px"])
+    ax.scatter(c, m, s=6, alpha=0.5, label="measured")
+    ax.scatter(c, p, s=6, alpha=0.5, label="model")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("signed CoC (px)"); ax.set_ylabel("R relative to L (px)")
+    ax.set_title(title + ": DP disparity vs CoC", fontsize=9)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_ratio(ratio: dict[str, Any], path: Path, title: str) -> str:
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3))
+    for ax, k in zip(axes, ("x", "y")):
+        t = ratio[k]
+        ax.plot(t["bin_center"], t["measured"], "o-", label="measured")
+        ax.plot(t["bin_center"], t["predicted"], "s--", label="model")
+        ax.set_xlabel(f"field {k}"); ax.set_ylabel("mean L / mean R")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title + ": L/R brightness ratio across the field", fontsize=9)
+    return _save(fig, path)
+
+
+def plot_psfs(psfs: list[dict[str, Any]], path: Path, title: str) -> str:
+    n = max(len(psfs), 1)
+    fig, axes = plt.subplots(n, 4, figsize=(7, 1.8 * n), squeeze=False)
+    for row, e in zip(axes, psfs):
+        for ax, name, lab in zip(row, ("L", "R", "PL", "PR"), ("meas L", "meas R", "model L", "model R")):
+            ax.imshow(np.asarray(e[name]), cmap="magma")
+            ax.set_xticks([]); ax.set_yticks([])
+            ax.set_title(f"{lab} c={e['coc_px']:.1f} {e['zone']}", fontsize=6)
+    fig.suptitle(title + ": PSFs estimated from data (Wiener) per CoC bin and field zone", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_findings(findings: list[dict[str, Any]], path: Path) -> str:
+    fig, ax = plt.subplots(figsize=(7, 3))
+    names = [f["effect"] for f in findings]
+    vals = [f["effect_size"] for f in findings]
+    colors = ["tab:red" if f["detected"] else "tab:gray" for f in findings]
+    ax.barh(names[::-1], vals[::-1], color=colors[::-1])
+    ax.set_xlabel("effect size (relative MSE reduction on the detection set)")
+    ax.tick_params(labelsize=7)
+    return _save(fig, path)
+
+
+def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) -> None:
+    """``out/report.json`` (the contract of issue 7 plus analysis tables) and ``out/report.md`` with figures."""
+    out.mkdir(parents=True, exist_ok=True)
+    figs = {}
+    for stage in ("before", "after"):
+        a = analysis.get(stage)
+        if not a:
+            continue
+        figs[f"residuals_{stage}"] = plot_residuals(a["residuals"], out / f"residuals_{stage}.png", stage)
+        figs[f"disparity_{stage}"] = plot_disparity(a["disparity"], out / f"disparity_{stage}.png", stage)
+        figs[f"lr_ratio_{stage}"] = plot_ratio(a["lr_ratio"], out / f"lr_ratio_{stage}.png", stage)
+        if a.get("psfs"):
+            figs[f"psfs_{stage}"] = plot_psfs(a["psfs"], out / f"psfs_{stage}.png", stage)
+    figs["findings"] = plot_findings(result["findings"], out / "findings.png")
+    full = dict(result)
+    full["analysis"] = analysis
+    full["figures"] = figs
+    write_json_atomic(out / "report.json", full)
+    g = result["gain"]
+    lines = [
+        f"# dp5k diagnose: `{result['model']}` on `{result['dataset']}`",
+        "",
+        f"**Cause: `{result['cause']}`**" + (f": {result['findings'][0]['explanation']}." if result["cause"] != "none" else ": no effect of the vocabulary is significant."),
+        "",
+        f"Base model fitted on train: {json.dumps({k: round(v, 4) for k, v in result.get('base_params', {}).items()})}",
+        "",
+        "## Findings (every effect tested, ranked)",
+        "",
+        "| effect | detected | effect size | statistic (t) | p-value | parameters | explanation |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for f in result["findings"]:
+        par = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in f["params"].items())
+        lines.append(f"| {f['effect']} | {'yes' if f['detected'] else 'no'} | {f['effect_size']:.4f} | {f['statistic']:.2f} | {f['p_value']:.2e} | {par} | {f['explanation']} |")
+    lines += ["", f"![findings]({figs['findings']})", "", f"## Gain on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs)", "",
+              "| metric | before | after |", "|---|---|---|",
+              f"| masked PSNR (dB) | {g['psnr_before']:.3f} | {g['psnr_after']:.3f} |",
+              f"| masked SSIM | {g['ssim_before']:.4f} | {g['ssim_after']:.4f} |",
+              f"| masked MAE | {g['mae_before']:.5f} | {g['mae_after']:.5f} |",
+              "", f"PSNR gain {g['psnr_after'] - g['psnr_before']:+.3f} dB, 95 % bootstrap CI over pairs [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}].", ""]
+    if "note" in g:
+        lines += [g["note"], ""]
+    for stage in ("before", "after"):
+        a = analysis.get(stage)
+        if not a:
+            continue
+        d = a["disparity"]
+        lines += [f"## What the {'base' if stage == 'before' else 'extended'} model gets wrong ({stage})", "",
+                  f"![residuals]({figs[f'residuals_{stage}']})", "",
+                  f"Disparity vs CoC: measured slope {d.get('measured_slope_px_per_coc', float('nan')):.4f} px/px, model {d.get('predicted_slope_px_per_coc', float('nan')):.4f} px/px over {d['n_tiles']} tiles.", "",
+                  f"![disparity]({figs[f'disparity_{stage}']}) ![ratio]({figs[f'lr_ratio_{stage}']})", ""]
+        if f"psfs_{stage}" in figs:
+            lines += ["| CoC (px) | zone | tiles | measured L-R separation (px) | model separation (px) |", "|---|---|---|---|---|"]
+            for e in a["psfs"]:
+                lines.append(f"| {e['coc_px']:.2f} | {e['zone']} | {e['n_tiles']} | {e['measured_separation_px']:.3f} | {e['model_separation_px']:.3f} |")
+            lines += ["", f"![psfs]({figs[f'psfs_{stage}']})", ""]
+    with atomic_path(out / "report.md") as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
