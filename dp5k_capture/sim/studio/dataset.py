@@ -99,6 +99,7 @@ def pair_from_rgbd(
     rng: np.random.Generator | None = None,
     noise: bool = True,
     sharp_is_pinhole: bool = False,
+    hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None = None,
 ) -> RenderedPair:
     """Render "measured" DP views from an RGBD frame.
 
@@ -115,6 +116,8 @@ def pair_from_rgbd(
         noise: add the nominal (and effect) noise to left/right.
         sharp_is_pinhole: if True, output ``sharp`` is rendered at f/22 from the input; else the input is
             kept as the sharp image.
+        hidden: optional ``(radiance, depth_mm)`` of the surfaces behind the visible ones (studio scenes
+            know them), for exact partial occlusion at depth edges.
 
     Returns:
         :class:`RenderedPair`.
@@ -131,11 +134,12 @@ def pair_from_rgbd(
     pitch = float(pixel_pitch_mm) if pixel_pitch_mm else SENSOR_SIZE_MM[0] / W
     F_true = float(focus_distance_mm) * effect_parameters("focus_offset", eff.s("focus_offset"))["focus_factor"]
     lens = LensSetting(float(focal_length_mm), float(f_number), F_true, pitch)
-    dp = render_dp(img, z, lens, eff)
+    dp = render_dp(img, z, lens, eff, hidden=hidden)
     left = _diffraction(dp.left, f_number, pitch)
     right = _diffraction(dp.right, f_number, pitch)
     if sharp_is_pinhole:
-        sh = render_dp(img, z, LensSetting(float(focal_length_mm), SHARP_F_NUMBER, F_true, pitch), EffectSet(), full=True, view_effects=False).full
+        sh = render_dp(img, z, LensSetting(float(focal_length_mm), SHARP_F_NUMBER, F_true, pitch), EffectSet(), full=True,
+                       view_effects=False, hidden=hidden).full
         sharp_out = _diffraction(sh, SHARP_F_NUMBER, pitch)
     else:
         sharp_out = img
@@ -211,6 +215,7 @@ def make_dataset(
         geom = view_geometry(scene, cam, None, (), supersample)
         radiance = geom.radiance(None)
         depth_mm = geom.depth_m * 1000.0
+        hidden = (geom.hidden_radiance(None), geom.hidden["depth_m"] * 1000.0) if geom.hidden is not None else None
         Xc = cam.R @ scene.focus_target_m + cam.t
         uv = cam.K @ (Xc / Xc[2])
         fx = float(np.clip(np.rint(uv[0]), 0, W - 1))
@@ -222,7 +227,7 @@ def make_dataset(
         for N in f_numbers:
             rp = pair_from_rgbd(radiance, depth_mm, f_number=float(N), focus_distance_mm=F_rec,
                                 focal_length_mm=cam.focal_length_mm, pixel_pitch_mm=cam.pixel_pitch_mm,
-                                effects=eff, rng=rng, noise=noise, sharp_is_pinhole=sharp is None)
+                                effects=eff, rng=rng, noise=noise, sharp_is_pinhole=sharp is None, hidden=hidden)
             if sharp is None:
                 sharp = rp.sharp
             pair_id = f"{scene.name}_{cam.name}_f{N:g}"

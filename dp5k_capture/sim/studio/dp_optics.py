@@ -115,6 +115,9 @@ def coc_channels_px(depth_mm: NDArray[np.floating], lens: LensSetting, effects: 
     H, W = z.shape
     out = np.empty((H, W, 3), np.float32)
     for ch in range(3):
+        if ch > 0 and shifts[ch] == shifts[ch - 1]:
+            out[:, :, ch] = out[:, :, ch - 1]
+            continue
         fc = f + shifts[ch]
         vz = 1.0 / (1.0 / fc - 1.0 / z)
         out[:, :, ch] = np.where(ok, A * (v - vz) / vz / lens.pixel_pitch_mm, 0.0)
@@ -229,6 +232,7 @@ def render_dp(
     *,
     full: bool = False,
     view_effects: bool = True,
+    hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None = None,
 ) -> DPRender:
     """Render the two DP views of a sharp radiance image with depth.
 
@@ -240,6 +244,10 @@ def render_dp(
             caller applies: the sensor adds noise and the caller chooses the true focus).
         full: also composite the full-aperture image (for the energy check and the f/22 frame).
         view_effects: apply the per-view effects (crosstalk, gains, misregistration) after compositing.
+        hidden: optional ``(radiance (H, W, 3), depth_mm (H, W))`` of the surface behind the visible one
+            (the studio's second ray hit; inf/0 = none). Placed in its own depth layer, it shows through
+            where a blurred foreground edge lets part of the aperture see past it (partial occlusion),
+            instead of the coverage-normalized guess.
 
     Returns:
         :class:`DPRender`.
@@ -256,37 +264,75 @@ def render_dp(
     # the camera sees beyond the frame: extend the scene by mirroring (so the border is not dark and
     # every view is normalized alike), render, crop back
     P = min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H - 1, W - 1)
-    img = np.pad(img, ((P, P), (P, P), (0, 0)), mode="symmetric")
-    z = np.pad(z, P, mode="symmetric")
-    coc = np.pad(coc_out, ((P, P), (P, P), (0, 0)), mode="symmetric")
+    pad2 = lambda a: np.pad(a, ((P, P), (P, P)) + ((0, 0),) * (a.ndim - 2), mode="symmetric")  # noqa: E731
+    img = pad2(img)
+    z = pad2(z)
+    coc = pad2(coc_out)
     H, W = img.shape[:2]
-    key = coc[:, :, 1]
-    lid = _layer_index(key)
+    lid = _layer_index(coc[:, :, 1])
     zsort = np.where(np.isfinite(z) & (z > 0), z, lens.focus_distance_mm)
-    ids, inverse, counts = np.unique(lid.ravel(), return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(H, W)
-    zmean = np.bincount(inverse.ravel(), weights=zsort.ravel()) / counts
-    cmean = np.stack([np.bincount(inverse.ravel(), weights=coc[:, :, ch].ravel().astype(np.float64)) / counts for ch in range(3)], 1)
+    # hidden surfaces (second hits behind the visible one), when the caller knows them
+    h_img = h_flat = None
+    if hidden is not None:
+        h_rad, h_depth = hidden
+        if np.shape(h_rad) != (H - 2 * P, W - 2 * P, 3) or np.shape(h_depth) != (H - 2 * P, W - 2 * P):
+            raise BadInputError("hidden radiance/depth must match the image's shape")
+        hz = pad2(np.asarray(h_depth, dtype=np.float64))
+        ok = np.isfinite(hz) & (hz > 0)
+        h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
+        h_lid = _layer_index(h_coc[:, :, 1])
+        ok &= (np.abs(h_lid - lid) > 1) & (hz > zsort)
+        h_flat = np.nonzero(ok.ravel())[0]
+        h_img = pad2(np.asarray(h_rad, dtype=np.float32))
+        all_lid = np.concatenate([lid.ravel(), h_lid.ravel()[h_flat]])
+        all_z = np.concatenate([zsort.ravel(), hz.ravel()[h_flat]])
+        all_c = np.concatenate([coc.reshape(-1, 3), h_coc.reshape(-1, 3)[h_flat]])
+    else:
+        all_lid, all_z, all_c = lid.ravel(), zsort.ravel(), coc.reshape(-1, 3)
+    lo = int(all_lid.min())
+    present = np.bincount(all_lid - lo)
+    lut = np.cumsum(present > 0) - 1
+    inv_all = lut[all_lid - lo].astype(np.int16 if lut[-1] < 32000 else np.int32)  # int16: numpy radix-sorts
+    counts = present[present > 0]
+    ids = np.nonzero(present)[0] + lo
+    zmean = np.bincount(inv_all, weights=all_z) / counts
+    cmean = np.stack([np.bincount(inv_all, weights=all_c[:, ch].astype(np.float64)) / counts for ch in range(3)], 1)
+    # flat pixel indices of every layer (front pixels, then hidden ones), grouped once by sorting
+    n_front = H * W
+    order = np.argsort(inv_all, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)])
     halves = ["L", "R"] + (["F"] if full else [])
     acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
     cov_acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    T = {h: np.ones((H, W, 3), np.float32) for h in halves}
+    chroma = effects is not None and eff.s("chromatic_defocus") > 0
+    nT = 3 if chroma else 1  # one transmittance for all colours unless their kernels differ
+    T = {h: np.ones((H, W, nT), np.float32) for h in halves}
     pending: dict[str, tuple] = {}
     for li in np.argsort(zmean, kind="stable"):
-        mask = inverse == li
-        rows = np.nonzero(mask.any(axis=1))[0]
-        cols = np.nonzero(mask.any(axis=0))[0]
+        members = order[starts[li] : starts[li + 1]]
+        is_front = members < n_front
+        front_flat = members[is_front]
+        hidden_flat = h_flat[members[~is_front] - n_front] if h_flat is not None else members[:0]
+        flat_all = np.concatenate([front_flat, hidden_flat])
+        rr, cc = flat_all // W, flat_all % W
         c3 = cmean[li]
         R = float(np.max(np.abs(c3))) / 2.0
         s = 1
         while R / (2 * s) >= LOWRES_RADIUS_PX:
             s *= 2
         pad = int(math.ceil(R)) + 3
-        y0, y1 = max(0, rows[0] - pad), min(H, rows[-1] + 1 + pad)
-        x0, x1 = max(0, cols[0] - pad), min(W, cols[-1] + 1 + pad)
+        y0, y1 = max(0, int(rr.min()) - pad), min(H, int(rr.max()) + 1 + pad)
+        x0, x1 = max(0, int(cc.min()) - pad), min(W, int(cc.max()) + 1 + pad)
         h, w = y1 - y0, x1 - x0
-        alpha = mask[y0:y1, x0:x1].astype(np.float32)
-        color = img[y0:y1, x0:x1] * alpha[:, :, None]
+        alpha = np.zeros((h, w), np.float32)
+        color = np.zeros((h, w, 3), np.float32)
+        fr, fc = front_flat // W - y0, front_flat % W - x0
+        alpha[fr, fc] = 1.0
+        color[fr, fc] = img[front_flat // W, front_flat % W]
+        if hidden_flat.size:
+            hr, hc = hidden_flat // W - y0, hidden_flat % W - x0
+            alpha[hr, hc] = 1.0
+            color[hr, hc] = h_img[hidden_flat // W, hidden_flat % W]
         if s > 1:
             hp, wp = -(-h // s) * s, -(-w // s) * s
             alpha_p = np.zeros((hp, wp), np.float32)
@@ -297,7 +343,6 @@ def render_dp(
         else:
             alpha_l, color_l = alpha, color
         kern = [left_kernel(c3[ch] / s, eff) for ch in range(3)]
-        same = all(kern[ch].shape == kern[1].shape and np.array_equal(kern[ch], kern[1]) for ch in (0, 2))
         for hname in halves:
             if hname == "L":
                 ks = kern
@@ -305,16 +350,17 @@ def render_dp(
                 ks = [k[:, ::-1] for k in kern]
             else:
                 ks = [0.5 * (k + k[:, ::-1]) for k in kern]
-            if same:
-                ba1 = _conv(alpha_l, ks[1])
-                ba = np.repeat(ba1[:, :, None], 3, axis=2)
-                bc = np.dstack([_conv(np.ascontiguousarray(color_l[:, :, ch]), ks[1]) for ch in range(3)])
+            if not chroma:
+                ba = _conv(alpha_l, ks[1])[:, :, None]
+                bc = _conv(color_l, ks[1])
             else:
                 ba = np.dstack([_conv(alpha_l, ks[ch]) for ch in range(3)])
                 bc = np.dstack([_conv(np.ascontiguousarray(color_l[:, :, ch]), ks[ch]) for ch in range(3)])
             if s > 1:
                 ba = _pyr_up(ba, s)[:h, :w]
                 bc = _pyr_up(bc, s)[:h, :w]
+                if ba.ndim == 2:
+                    ba = ba[:, :, None]
             np.clip(ba, 0.0, 1.0, out=ba)
             # the neighbouring depth bin is the same surface, not an occluder: its alpha joins the
             # transmittance one layer late (a continuous surface cut into bins shows no seams)

@@ -225,7 +225,8 @@ def _cone_cull(prim, o: Arr, d: Arr) -> NDArray[np.int64] | None:
     return np.nonzero(d @ (w / dist) >= cos_lim)[0]
 
 
-def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArray[np.int32]]:
+def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19, exclude: NDArray[np.int32] | None = None
+         ) -> tuple[Arr, NDArray[np.int32]]:
     """Nearest hit of each ray over all primitives (all rays leave one point: a camera or the projector).
 
     Args:
@@ -233,6 +234,7 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
         o: (3,) the rays' common origin (m).
         d: (N, 3) unit ray directions.
         chunk: rays per batch (bounds memory).
+        exclude: (N,) per-ray primitive index to ignore (-1 = none): the second hit behind a closed object.
 
     Returns:
         ``t`` (N,) metres along the ray (inf = no hit) and ``idx`` (N,) primitive index (-1 = no hit).
@@ -247,16 +249,21 @@ def cast(prims: list, o: Arr, d: Arr, chunk: int = 1 << 19) -> tuple[Arr, NDArra
         tb = t_best[sl]
         ib = idx[sl]
         ds = d[sl]
+        ex = None if exclude is None else exclude[sl]
         for k, prim in enumerate(prims):
             sub = _cone_cull(prim, o, ds)
             if sub is None:
                 t = prim.intersect(o, ds)
                 better = t < tb
+                if ex is not None:
+                    better &= ex != k
                 tb[better] = t[better]
                 ib[better] = k
             elif sub.size:
                 t = prim.intersect(o, ds[sub])
                 better = t < tb[sub]
+                if ex is not None:
+                    better &= ex[sub] != k
                 tb[sub[better]] = t[better]
                 ib[sub[better]] = k
     return t_best, idx

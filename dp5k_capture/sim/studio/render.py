@@ -38,6 +38,9 @@ class ViewGeometry:
         depth_m: (H, W) float64 z-depth at pixel centres (inf = no surface).
         proj_xy: (H, W, 2) float64 continuous projector coordinates of the pixel-centre point (NaN = unlit).
         prim: (H, W) int32 primitive index at pixel centres (-1 = none).
+        hidden: the surface behind the visible one at pixel centres (the next hit on another primitive),
+            or None: dict with ``depth_m`` (H, W) (inf = none), ``albedo`` (H*W, 3), ``base_light``,
+            ``proj_index``, ``proj_gain`` (H*W,). Used for partial occlusion at depth edges.
     """
 
     height: int
@@ -50,6 +53,19 @@ class ViewGeometry:
     depth_m: NDArray[np.float64]
     proj_xy: NDArray[np.float64]
     prim: NDArray[np.int32]
+    hidden: dict | None = None
+
+    def hidden_radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32] | None:
+        """(H, W, 3) radiance of the hidden surfaces under a projector image (None if not computed)."""
+        if self.hidden is None:
+            return None
+        h = self.hidden
+        light = np.repeat(h["base_light"][:, None], 3, axis=1)
+        if pattern is not None:
+            m = h["proj_index"] >= 0
+            pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
+            light[m] += pat[h["proj_index"][m]] * h["proj_gain"][m][:, None]
+        return (h["albedo"] * light).reshape(self.height, self.width, 3).astype(np.float32)
 
     def radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32]:
         """(H, W, 3) float32 radiance under a projector image ((Hp, Wp[, 3]) in [0, 1]) or None (dark)."""
@@ -115,7 +131,7 @@ def projector_visibility(prims: list, proj: ProjectorModel, X: NDArray[np.float6
 
 
 def view_geometry(scene, cam: CameraModel, projector: ProjectorModel | None, extra_prims: tuple = (), supersample: int = 2,
-                  chunk: int = 1 << 18) -> ViewGeometry:
+                  chunk: int = 1 << 18, hidden: bool = True) -> ViewGeometry:
     """Ray-cast one camera (see module docstring).
 
     Args:
@@ -125,6 +141,7 @@ def view_geometry(scene, cam: CameraModel, projector: ProjectorModel | None, ext
         extra_prims: more primitives (the ChArUco board).
         supersample: ``s`` x ``s`` rays per pixel for the radiance (box filter); with odd ``s`` the centre
             ray is one of them, with even ``s`` one more ray per pixel centre is cast for depth.
+        hidden: also find the surface behind the visible one at each pixel centre (one more ray cast).
     """
     prims = list(scene.prims) + list(extra_prims)
     H, W = cam.height, cam.width
@@ -186,4 +203,50 @@ def view_geometry(scene, cam: CameraModel, projector: ProjectorModel | None, ext
             h = np.nonzero(hit)[0]
             puv[h] = projector_visibility(prims, projector, X[h], n[h])[0]
         puv = puv.reshape(H, W, 2)
-    return ViewGeometry(H, W, s, albedo, base, pidx, pgain, depth, puv, prim)
+    hid = _hidden_layer(prims, scene, cam, projector, prim) if hidden else None
+    return ViewGeometry(H, W, s, albedo, base, pidx, pgain, depth, puv, prim, hid)
+
+
+HIDDEN_BAND_FRAC = 0.06
+"""Hidden surfaces are found within ``max(8 px, 0.06 W)`` of an occlusion edge (beyond that, a foreground's
+blur that wide falls back to coverage normalization)."""
+
+
+def _hidden_layer(prims: list, scene, cam: CameraModel, projector: ProjectorModel | None, prim: NDArray[np.int32]) -> dict:
+    """Second hits at pixel centres near occlusion edges, skipping the visible primitive (so a closed
+    object's back face is never taken for what lies behind it)."""
+    import cv2
+
+    H, W = prim.shape
+    edge = np.zeros((H, W), bool)
+    edge[:, 1:] |= prim[:, 1:] != prim[:, :-1]
+    edge[:, :-1] |= prim[:, 1:] != prim[:, :-1]
+    edge[1:, :] |= prim[1:, :] != prim[:-1, :]
+    edge[:-1, :] |= prim[1:, :] != prim[:-1, :]
+    band = max(8.0, HIDDEN_BAND_FRAC * W)
+    dist = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3)
+    sel = np.nonzero(((dist <= band) & (prim >= 0)).ravel())[0]
+    depth = np.full(H * W, np.inf)
+    alb = np.zeros((H * W, 3), np.float32)
+    base = np.zeros(H * W, np.float32)
+    pidx = np.full(H * W, -1, np.int64)
+    pgain = np.zeros(H * W, np.float32)
+    if sel.size:
+        d, zc = pixel_rays(cam, (sel % W).astype(np.float64), (sel // W).astype(np.float64))
+        C = cam.center_m
+        t, idx = cast(prims, C, d, exclude=prim.ravel()[sel])
+        hit = idx >= 0
+        h = sel[hit]
+        depth[h] = t[hit] * zc[hit]
+        X = C[None, :] + t[hit][:, None] * d[hit]
+        a, n = shade_albedo(prims, X, idx[hit])
+        flip = np.einsum("ij,ij->i", n, d[hit]) > 0
+        n[flip] *= -1.0
+        alb[h] = a
+        ldir = np.asarray(scene.light_dir, dtype=np.float64)
+        base[h] = scene.ambient + scene.key_light * np.clip(n @ ldir, 0.0, 1.0)
+        if projector is not None:
+            _, pi, pg = projector_visibility(prims, projector, X, n)
+            pidx[h] = pi
+            pgain[h] = pg
+    return {"depth_m": depth.reshape(H, W), "albedo": alb, "base_light": base, "proj_index": pidx, "proj_gain": pgain}

@@ -167,7 +167,11 @@ class Studio:
         """Noise-free linear DP views (H, W, 3) of ``camera`` at raw resolution (diffraction included)."""
         cam = self._camera(camera)
         lens = LensSetting(cam.focal_length_mm, float(f_number), self.true_focus_mm(focus_distance_m), cam.pixel_pitch_mm)
-        out = render_dp(self.radiance(camera), self.geometry(camera).depth_m * 1000.0, lens, self.effects, full=full)
+        geom = self.geometry(camera)
+        hidden = None
+        if geom.hidden is not None:
+            hidden = (geom.hidden_radiance(self._pattern), geom.hidden["depth_m"] * 1000.0)
+        out = render_dp(self.radiance(camera), geom.depth_m * 1000.0, lens, self.effects, full=full, hidden=hidden)
         sig = diffraction_sigma_px(f_number, cam.pixel_pitch_mm)
         if sig > 0.05:
             blur = lambda a: cv2.GaussianBlur(a, (0, 0), sig, borderType=cv2.BORDER_REFLECT)  # noqa: E731

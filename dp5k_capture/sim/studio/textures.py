@@ -15,6 +15,7 @@ so a scene renders identically from any viewpoint and on any run. Albedo is line
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,39 +47,35 @@ class TextureSpec:
     size_m: tuple[float, float] = (1.0, 1.0)
 
 
-def _hash01(ix: NDArray[np.int64], iy: NDArray[np.int64], seed: int) -> NDArray[np.float64]:
-    """Deterministic lattice hash in [0, 1) (integer mixing, vectorized)."""
-    h = (ix.astype(np.uint64) * np.uint64(0x9E3779B1) ^ iy.astype(np.uint64) * np.uint64(0x85EBCA77)
-         ^ np.uint64((seed * 0xC2B2AE3D) & 0xFFFFFFFF))
-    h &= np.uint64(0xFFFFFFFF)
-    h ^= h >> np.uint64(15)
-    h = (h * np.uint64(0x2C1B3C6D)) & np.uint64(0xFFFFFFFF)
-    h ^= h >> np.uint64(12)
-    h = (h * np.uint64(0x297A2D39)) & np.uint64(0xFFFFFFFF)
-    h ^= h >> np.uint64(15)
-    return h.astype(np.float64) / 4294967296.0
+@lru_cache(maxsize=256)
+def _lattice(seed: int) -> NDArray[np.float32]:
+    """The noise lattice of one seed: (256, 256) uniform values in [0, 1) (period 256 cells)."""
+    return np.random.default_rng(np.uint32(seed & 0xFFFFFFFF)).random((256, 256), dtype=np.float32)
 
 
-def value_noise(u: NDArray[np.float64], v: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
-    """Smooth value noise in [0, 1] with unit lattice period (smoothstep interpolation)."""
-    iu = np.floor(u)
-    iv = np.floor(v)
-    fu = u - iu
-    fv = v - iv
-    iu = iu.astype(np.int64)
-    iv = iv.astype(np.int64)
+def value_noise(u: NDArray[np.float64], v: NDArray[np.float64], seed: int) -> NDArray[np.float32]:
+    """Smooth value noise in [0, 1] with unit lattice period (smoothstep interpolation), float32."""
+    lat = _lattice(int(seed))
+    fu_ = np.floor(u)
+    fv_ = np.floor(v)
+    fu = (u - fu_).astype(np.float32)
+    fv = (v - fv_).astype(np.float32)
+    iu = fu_.astype(np.int64) & 255
+    iv = fv_.astype(np.int64) & 255
+    iu1 = (iu + 1) & 255
+    iv1 = (iv + 1) & 255
     su = fu * fu * (3.0 - 2.0 * fu)
     sv = fv * fv * (3.0 - 2.0 * fv)
-    a = _hash01(iu, iv, seed)
-    b = _hash01(iu + 1, iv, seed)
-    c = _hash01(iu, iv + 1, seed)
-    d = _hash01(iu + 1, iv + 1, seed)
-    return (a * (1 - su) + b * su) * (1 - sv) + (c * (1 - su) + d * su) * sv
+    a = lat[iv, iu]
+    b = lat[iv, iu1]
+    c = lat[iv1, iu]
+    d = lat[iv1, iu1]
+    return (a + (b - a) * su) * (1 - sv) + (c + (d - c) * su) * sv
 
 
 def fbm(u: NDArray[np.float64], v: NDArray[np.float64], seed: int, octaves: int = 4) -> NDArray[np.float64]:
     """Fractal sum of value noise, normalized to [0, 1]."""
-    total = np.zeros_like(u)
+    total = np.zeros(u.shape, np.float32)
     amp, norm, freq = 1.0, 0.0, 1.0
     for o in range(octaves):
         total += amp * value_noise(u * freq + 17.3 * o, v * freq - 9.1 * o, seed + 101 * o)
