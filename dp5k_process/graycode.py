@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -50,6 +51,9 @@ class GrayCodeConfig:
         max_weak_bits: weak bits tolerated among a code's leading bits (per axis). A pixel that straddles a stripe
             edge has exactly one weak bit, and since neighbouring Gray codes differ in one bit, either reading of
             it gives one of the two codes the pixel really sees; 0 = OpenCV's rule (any weak bit rejects).
+        denoise_px: n > 1 adds a second test on n x n box means (noise / n, so thresholds / n): a pixel too
+            noisy on its own (dim, far surfaces) takes the bit and the shadow test from its neighbourhood;
+            a sharp single-pixel decision still wins, so fine stripes keep their resolution. 0 = off.
     """
 
     proj_width: int = 1920
@@ -59,6 +63,7 @@ class GrayCodeConfig:
     rel_thr: float = 0.0
     n_scales: int = 4
     max_weak_bits: int = 1
+    denoise_px: int = 0
 
     @classmethod
     def for_linear_raw(cls, proj_width: int = 1920, proj_height: int = 1200, max_weak_bits: int = 1) -> GrayCodeConfig:
@@ -68,9 +73,10 @@ class GrayCodeConfig:
         projector that adds a few hundred counts over the ambient light is normal (the f/22 structured-light
         frames), so the thresholds are set from the sensor noise instead: shadow 0.8 % (127 counts, about
         12 sigma of a white-black difference at that level), bit 0.25 % (40 counts, about 4 sigma) and at least
-        10 % of the pixel's own white-black contrast.
+        10 % of the pixel's own white-black contrast; plus the 3 x 3 neighbourhood test (``denoise_px``).
         """
-        return cls(proj_width, proj_height, white_thr=0.0025, black_thr=0.008, rel_thr=0.10, max_weak_bits=max_weak_bits)
+        return cls(proj_width, proj_height, white_thr=0.0025, black_thr=0.008, rel_thr=0.10, max_weak_bits=max_weak_bits,
+                   denoise_px=3)
 
 
 @dataclass
@@ -144,9 +150,18 @@ def decode_graycode(
                             f"projector, got {len(patterns)}")
     w = _as_float(white)
     b = _as_float(black)
+    n = int(cfg.denoise_px)
+
+    def box(a: NDArray[np.float32]) -> NDArray[np.float32]:
+        return cv2.boxFilter(a, -1, (n, n), borderType=cv2.BORDER_REFLECT)
+
     contrast = np.abs(w - b)
     lit = contrast > cfg.black_thr * full_scale
     thr = np.maximum(np.float32(cfg.white_thr * full_scale), np.float32(cfg.rel_thr) * contrast)
+    if n > 1:
+        contrast_s = np.abs(box(w - b))
+        lit |= contrast_s > cfg.black_thr * full_scale / n
+        thr_s = np.maximum(np.float32(cfg.white_thr * full_scale / n), np.float32(cfg.rel_thr) * contrast_s)
     out = []
     offset = 0
     for nb in (n_bits(cfg.proj_width), n_bits(cfg.proj_height)):
@@ -160,9 +175,17 @@ def decode_graycode(
             if pos.shape != w.shape or neg.shape != w.shape:
                 raise BadInputError(f"pattern {offset + 2 * k} has shape {pos.shape}, expected {w.shape}")
             diff = pos - neg
-            weak += np.abs(diff) < thr
+            strong = np.abs(diff) >= thr
+            if n > 1:
+                diff_s = box(diff)
+                strong_s = np.abs(diff_s) >= thr_s
+                bit = np.where(strong, diff > 0, diff_s > 0)
+                strong |= strong_s
+            else:
+                bit = diff > 0
+            weak += ~strong
             count += weak <= cfg.max_weak_bits
-            prev ^= diff > 0  # Gray -> binary: b_k = b_{k-1} xor g_k
+            prev ^= bit  # Gray -> binary: b_k = b_{k-1} xor g_k
             code = (code << 1) | prev
         out.append((code, count))
         offset += 2 * nb

@@ -242,7 +242,8 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
             raise BadInputError(f"{cam} structured-light frames are {size}, expected {raw_size}", where=session.root)
     timings["decode_s"] = time.perf_counter() - t0
 
-    report: dict[str, Any] = {"scene": session.scene, "calibration": cal_info, "cameras": {}}
+    report: dict[str, Any] = {"scene": session.scene, "manifest_scene": session.manifest.get("scene"),
+                              "calibration": cal_info, "cameras": {}}
     pairs: list[PairData] = []
     depth_out: dict[str, NDArray[np.float32]] = {}
     timings["depth_s"] = timings["views_s"] = timings["pairs_s"] = 0.0

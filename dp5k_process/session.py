@@ -120,7 +120,7 @@ def load_session(root: str | Path) -> Session:
     if manifest.get("complete") is not True:
         raise BadInputError("session is not complete (manifest lacks complete: true); resume the capture",
                             where=mpath)
-    scene = str(manifest.get("scene", root.name))
+    scene = root.name  # the folder names the scene (RAW/<scene>/); the manifest's name is kept in the report
     rig = manifest.get("rig", {}) or {}
     proj = rig.get("projector", {}) or {}
     if "resolution" in proj:

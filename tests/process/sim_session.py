@@ -35,12 +35,31 @@ CHARUCO_POSES = [board_pose((0.0, 0.0, 2.1), 18.0, 8.0, 3.0), board_pose((0.03, 
 shots; a hand-held board in front of the scene would be partly hidden by the scene's objects)."""
 
 
-def write_session(root: Path, scene_name: str, scale: str = "small", f_numbers=(1.8, 4.0), seed: int = 1,
+def wall_scene(yaw_deg: float, occluder: bool = False):
+    """The "wall" preset's wall at 2.2 m turned by ``yaw_deg``; ``occluder`` adds a box hiding part of the board."""
+    from dp5k_capture.sim.studio.geometry import Box
+    from dp5k_capture.sim.studio.scenes import Scene, _wall
+    from dp5k_capture.sim.studio.textures import TextureSpec
+
+    tex = TextureSpec("noise", (0.8, 0.78, 0.74), (0.55, 0.53, 0.5), 0.2, seed=5)
+    prims = [_wall(2.2, yaw_deg, tex, name="wall")]
+    if occluder:
+        prims.append(Box(np.array([-0.2, -0.12, 1.7]), np.eye(3), np.array([0.12, 0.1, 0.05]),
+                         TextureSpec("noise", (0.6, 0.5, 0.4), (0.3, 0.3, 0.3), 0.05, seed=7), "occluder"))
+    return Scene(f"wall{yaw_deg:g}{'_hidden' if occluder else ''}", tuple(prims), np.array([0.0, 0.0, 2.2]))
+
+
+def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 4.0), seed: int = 1,
                   projector_size: tuple[int, int] = (1920, 1200), board_on_wall: bool = False,
                   manifest_intrinsics: bool = True) -> dict:
-    """Render and write RAW/<scene>/...; returns the studio's ground truth per camera (raw resolution)."""
+    """Render and write RAW/<scene>/...; returns the studio's ground truth per camera (raw resolution).
+
+    ``scene_name`` is a studio preset / seed, or a ``Scene`` (its ``name`` names the folder)."""
     rig = make_rig(scale, seed=seed, projector_size=projector_size)
-    scene = make_scene(scene_name, rig)
+    if isinstance(scene_name, str):
+        scene = make_scene(scene_name, rig)
+    else:
+        scene, scene_name = scene_name, scene_name.name
     studio = Studio(scene, rig, seed=seed)
     rng = np.random.default_rng(seed)
     out = root / scene_name
@@ -53,6 +72,9 @@ def write_session(root: Path, scene_name: str, scale: str = "small", f_numbers=(
         files.append(dict(path=p.relative_to(out).as_posix(), kind=kind, camera=f"cam{cam}", f_number=N,
                           shutter_s=shutter, iso=100, size=p.stat().st_size, sha256=sha256_file(p), **extra))
 
+    if board_on_wall:
+        from dp5k_capture.sim.studio.scenes import wall_board_pose
+        studio.set_board_pose(wall_board_pose(scene, DEFAULT_BOARD.size_m))
     focus_px = [studio.focus_point_px(c) for c in (0, 1)]
     focus_m = [studio.focus_distance_m(c, focus_px[c]) for c in (0, 1)]
     calib_studio = Studio(plane_scene(8.0), rig, seed=seed + 1)
@@ -64,9 +86,6 @@ def write_session(root: Path, scene_name: str, scale: str = "small", f_numbers=(
             write_dual_pixel_dng(p, e.main, e.aux, e.black_level, e.white_level, e.wb_gains, e.metadata)
             files.append(dict(path=p.relative_to(out).as_posix(), kind="charuco", camera=f"cam{c}", f_number=22.0,
                               shutter_s=0.25, iso=100, size=p.stat().st_size, sha256=sha256_file(p)))
-    if board_on_wall:
-        from dp5k_capture.sim.studio.scenes import wall_board_pose
-        studio.set_board_pose(wall_board_pose(scene, DEFAULT_BOARD.size_m))
     Wp, Hp = projector_size
     studio.set_projector_image(None)
     for c in (0, 1):
