@@ -85,6 +85,20 @@ def fbm(u: NDArray[np.float64], v: NDArray[np.float64], seed: int, octaves: int 
     return total / norm
 
 
+@lru_cache(maxsize=1)
+def _fbm_samples() -> NDArray[np.float32]:
+    """Sorted samples of 3-octave fbm (its distribution, for area-calibrated thresholds)."""
+    g = np.linspace(0.0, 64.0, 400)
+    u, v = np.meshgrid(g, g)
+    return np.sort(fbm(u.ravel(), v.ravel(), 12345, octaves=3))
+
+
+def _fbm_quantile(q: float) -> float:
+    """Value below which a fraction ``q`` of 3-octave fbm lies."""
+    s = _fbm_samples()
+    return float(s[int(np.clip(q, 0.0, 1.0) * (len(s) - 1))])
+
+
 def evaluate(tex: TextureSpec, u_m: NDArray[np.float64], v_m: NDArray[np.float64]) -> NDArray[np.float32]:
     """Albedo of ``tex`` at surface coordinates.
 
@@ -115,7 +129,7 @@ def evaluate(tex: TextureSpec, u_m: NDArray[np.float64], v_m: NDArray[np.float64
     out = a[None, :] * (1.0 - w[:, None]) + b[None, :] * w[:, None]
     if tex.dark_fraction > 0:
         m = fbm(u_m / (3.0 * tex.scale_m + 0.05), v_m / (3.0 * tex.scale_m + 0.05), tex.seed + 7777, octaves=3)
-        thr = np.quantile(np.linspace(0.2, 0.8, 101), 1.0 - tex.dark_fraction)  # fbm spans ~0.2..0.8
+        thr = _fbm_quantile(1.0 - tex.dark_fraction)
         dark = np.clip((m - thr) / 0.02, 0.0, 1.0)[:, None]
         out = out * (1.0 - dark) + dark * np.array([0.02, 0.018, 0.015])[None, :]
     return np.clip(out, 0.0, 1.0).astype(np.float32)
