@@ -87,6 +87,6 @@ def test_textures_have_variety_including_dark_patches() -> None:
     # dark patches are really dark (low albedo that defeats structured light)
     from dp5k_capture.sim.studio.textures import TextureSpec, evaluate
 
-    u, v = np.meshgrid(np.linspace(0, 3, 200), np.linspace(0, 3, 200))
+    u, v = np.meshgrid(np.linspace(0, 30, 300), np.linspace(0, 30, 300))
     alb = evaluate(TextureSpec("noise", dark_fraction=0.3, seed=1), u.ravel(), v.ravel())
-    assert 0.15 < (alb.max(axis=1) < 0.04).mean() < 0.5
+    assert 0.2 < (alb.max(axis=1) < 0.04).mean() < 0.35  # dark_fraction 0.3 of the area
