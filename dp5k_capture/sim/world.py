@@ -152,17 +152,34 @@ class StudioOptics:
         return self.focus_m[i]
 
     def board_pose(self, view: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Board -> world pose of view ``view``: facing the rig, 0.25 m in front of the focus target, tilted."""
+        """Board -> world pose of ChArUco view ``view`` (metres), as an operator would hold it.
+
+        The board faces the rig on its centre line, tilted differently per view (yaw / pitch), at the focus
+        target's depth but no nearer than 2.6 m + a per-view offset: at 85 mm on 36 x 24 mm the view is
+        0.42 z wide and 0.28 z high, so the 0.72 x 0.54 m board fits both toed-in cameras with a margin
+        from about 2.5 m on; it stays 0.1 m in front of whatever the rig sees behind it.
+        """
         from calib.board import DEFAULT_BOARD
 
-        yaw, pitch = [(0.0, 0.0), (np.deg2rad(18), np.deg2rad(5)), (np.deg2rad(-15), np.deg2rad(-10))][view % 3]
+        yaw_deg, pitch_deg, dz_m = [(0.0, 0.0, 0.0), (15.0, 6.0, 0.25), (-12.0, -8.0, -0.1)][view % 3]
+        yaw, pitch = np.deg2rad(yaw_deg), np.deg2rad(pitch_deg)
         cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
         R = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) @ np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
-        target = np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)
-        centre = np.array([0.0, 0.0, target[2] - 0.25])
+        target_z = float(np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)[2])
+        z = min(max(target_z, 2.6) + dz_m, self._depth_behind_board_m() - 0.1)
         w, h = DEFAULT_BOARD.size_m
-        t = centre - R @ np.array([w / 2, h / 2, 0.0])
+        t = np.array([0.0, 0.0, z]) - R @ np.array([w / 2, h / 2, 0.0])
         return R, t
+
+    def _depth_behind_board_m(self) -> float:
+        """Typical scene depth (m, median) in the central third of cam0's view, board removed: the background
+        the board must stay in front of (nearer objects may occlude part of it, as on the real rig)."""
+        self.studio.set_board_pose(None)
+        depth = np.asarray(self.studio.ground_truth(0)["depth_m"], dtype=np.float64)
+        H, W = depth.shape
+        centre = depth[H // 3 : 2 * H // 3, W // 3 : 2 * W // 3]
+        centre = centre[np.isfinite(centre)]
+        return float(np.median(centre)) if centre.size else 10.0
 
     def place(self, view: int) -> None:
         R, t = self.board_pose(view)

@@ -177,3 +177,15 @@ def test_dp5k_capture_sim_demo01_end_to_end(tmp_path: Path) -> None:
     (out / "demo01/cam1/sl_10.dng").write_bytes(b"x")
     res = runner.invoke(main, ["verify", "--no-dp-check", str(out / "demo01")])
     assert res.exit_code == 4 and "cam1/sl_10.dng: size" in res.output
+
+
+def test_cli_devices_lists_the_simulated_rig() -> None:
+    res = CliRunner().invoke(main, ["devices", "--sim"])
+    assert res.exit_code == 0, res.output
+    assert "Canon bodies (2):" in res.output and "04a9:3281" in res.output and "serial SIM5D4000001" in res.output
+    assert "simulated EPSON EB-U42" in res.output and "/dev/pts/" in res.output
+
+
+def test_cli_verify_rejects_a_folder_without_manifest(tmp_path: Path) -> None:
+    res = CliRunner().invoke(main, ["verify", str(tmp_path)])
+    assert res.exit_code == 3 and "no manifest.json" in res.output

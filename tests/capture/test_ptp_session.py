@@ -148,3 +148,47 @@ def test_class_requests(body: Body) -> None:
     s.cancel()
     s.reset()
     assert not body.core.session_open and s.session_id is None
+
+
+class _RandomWire:
+    """A transport whose bulk IN delivers arbitrary bytes in arbitrary chunks, then times out."""
+
+    name = "fuzz body"
+    max_packet = 512
+
+    def __init__(self, chunks: list[bytes]) -> None:
+        self.chunks = list(chunks)
+
+    def write(self, data: bytes, timeout_ms: int) -> None:
+        pass
+
+    def read(self, size: int, timeout_ms: int) -> bytes:
+        if not self.chunks:
+            raise PTPTimeoutError("bulk IN: timed out", where=self.name)
+        c = self.chunks.pop(0)
+        if len(c) > size:
+            self.chunks.insert(0, c[size:])
+            c = c[:size]
+        return c
+
+    def cancel(self, tid: int) -> None:
+        pass
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from dp5k_common.errors import DeviceError  # noqa: E402
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.binary(max_size=64), max_size=6), st.booleans())
+def test_session_survives_garbled_streams(chunks: list[bytes], data_in: bool) -> None:
+    """Whatever arrives on bulk IN, a transaction ends in a result or a DeviceError naming the device."""
+    from dp5k_capture.ptp.session import SessionConfig
+
+    s = PTPSession(_RandomWire(chunks), SessionConfig(max_data_bytes=1 << 16, busy_retries=2, busy_delay_s=0.0))
+    try:
+        s.transaction(Op.GET_DEVICE_INFO, data_in=data_in)
+    except DeviceError as exc:
+        assert "fuzz body" in str(exc)
