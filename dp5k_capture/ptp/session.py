@@ -100,7 +100,8 @@ class PTPSession:
 
     def _read_container(self, timeout_ms: int, expect_data: bool) -> tuple[Header, bytes]:
         """Read one whole container from the bulk-IN stream; returns its header and body bytes."""
-        self._fill(HEADER_LEN, self.config.first_read, timeout_ms)
+        # a read shorter than one packet overflows when the device sends a full packet (USB 3: 1024 bytes)
+        self._fill(HEADER_LEN, max(self.config.first_read, self.transport.max_packet), timeout_ms)
         peek = parse_header(self._pending, max_length=MAX_CONTAINER_BYTES, where=self.name)
         bound = self.config.max_data_bytes + HEADER_LEN if peek.type == ContainerType.DATA else HEADER_LEN + 20
         if peek.type == ContainerType.DATA and peek.length == 0xFFFFFFFF:

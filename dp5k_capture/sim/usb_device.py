@@ -143,6 +143,8 @@ class SimUsbPtpDevice:
             self.faults.short_next_in = False
             self._in.popleft()
             return bytes(cur[:5])
+        if size % self.max_packet and len(cur) > size:  # libusb: a full packet into a shorter buffer overflows
+            raise self._usb_error(errno.EOVERFLOW, "Overflow")
         n = min(size, len(cur))
         if self.faults.disconnect_after_in_bytes is not None:
             left = self.faults.disconnect_after_in_bytes - self.in_bytes

@@ -192,3 +192,19 @@ def test_session_survives_garbled_streams(chunks: list[bytes], data_in: bool) ->
         s.transaction(Op.GET_DEVICE_INFO, data_in=data_in)
     except DeviceError as exc:
         assert "fuzz body" in str(exc)
+
+
+def test_superspeed_packets_never_overflow_the_read_buffer() -> None:
+    """USB 3 bodies send 1024-byte packets: every read must be a whole number of packets."""
+    b = Body()
+    b.usb.max_packet = 1024
+    from dp5k_capture.ptp.transport import UsbTransport as _T
+
+    s = PTPSession(_T(b.device, "usb3 body"), b.session.config)
+    assert s.transport.max_packet == 1024
+    s.open_session()
+    assert s.get_device_info().model == "Canon EOS 5D Mark IV"
+    b.core.props[0xD11C] = 2
+    b.core.handle(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
+    h = s.get_object_handles()[0]
+    assert s.get_object(h) == b.core.last_object_bytes
