@@ -87,3 +87,18 @@ def test_cli_make_dataset_check_and_errors(tmp_path: Path) -> None:
     res = runner.invoke(main, ["-q", "studio", "render", "boxes", str(png), "--scale", "60"])
     assert res.exit_code == 0, res.output
     assert png.stat().st_size > 1000
+
+
+def test_rerender_an_rgbd_dataset_with_effects(dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "rerendered"
+    res = CliRunner().invoke(main, ["-q", "studio", "make-dataset", str(out), "--from", str(dataset),
+                                    "--effect", "lr_gain_imbalance=1", "--no-noise"])
+    assert res.exit_code == 0, res.output
+    src, new = DatasetReader(dataset), DatasetReader(out)
+    assert new.splits == src.splits
+    for pid in src.ids()[:4]:
+        a, b = src.load(pid), new.load(pid)
+        assert np.array_equal(a.sharp, b.sharp) and np.array_equal(a.depth_mm, b.depth_mm)
+        assert np.allclose(a.coc_px, b.coc_px, atol=1e-4)
+        assert set(b.params.extra["effects"]) == {"lr_gain_imbalance"}
+        assert b.left.mean() / b.right.mean() == pytest.approx(1.2, abs=0.05)

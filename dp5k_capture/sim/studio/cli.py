@@ -32,13 +32,19 @@ def studio_group() -> None:
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--no-noise", is_flag=True, help="Write noise-free DP views.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing dataset's pairs.")
+@click.option("--from", "source", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Re-render the DP views of this format-v1 dataset (any RGBD source) instead of studio scenes.")
 def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...], effects: tuple[str, ...], size: str,
-                         f_numbers: str, seed: int, no_noise: bool, overwrite: bool) -> None:
+                         f_numbers: str, seed: int, no_noise: bool, overwrite: bool, source: Path | None) -> None:
     """Render a format-v1 dataset (scene x camera x f-number pairs) into OUT."""
-    from .dataset import make_dataset
+    from .dataset import make_dataset, make_dataset_from_rgbd
     from .effects import parse_effects
 
     eff = parse_effects(effects)
+    if source is not None:
+        path = make_dataset_from_rgbd(out, source, eff, seed=seed, overwrite=overwrite, noise=not no_noise)
+        click.echo(f"wrote {path} from {source} ({', '.join(eff.names()) or 'no effects'})")
+        return
     try:
         fns = [float(v) for v in f_numbers.split(",") if v.strip()]
     except ValueError:

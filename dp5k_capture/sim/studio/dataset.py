@@ -242,3 +242,48 @@ def make_dataset(
                 generator={"tool": "dp5k studio make-dataset", "seed": int(seed), "size": [W, H],
                            "f_numbers": [float(n) for n in f_numbers], "scenes": [str(s) for s in items]})
     return out
+
+
+def make_dataset_from_rgbd(
+    out_dir: str | os.PathLike[str],
+    source: str | os.PathLike[str],
+    effects: EffectSet | Mapping[str, float] | Iterable[str] | None = None,
+    seed: int = 0,
+    overwrite: bool = False,
+    noise: bool = True,
+) -> Path:
+    """Re-render the DP views of every pair of an existing format-v1 dataset (any RGBD source: processed
+    captures, imported RGBD frames) with planted effects; sharp, depth, parameters and splits are kept.
+
+    Each source pair's ``sharp`` is treated as the pinhole radiance, its ``depth.png`` as z-depth (0 =
+    invalid, rendered in focus) and its params (f-number, recorded focus distance, focal length, pixel
+    pitch) as the capture settings.
+
+    Returns:
+        The new dataset folder.
+    """
+    from dp5k_common.dataset import DatasetReader
+
+    eff = as_effects(effects)
+    src = DatasetReader(source)
+    out = Path(out_dir)
+    if out.resolve() == Path(source).resolve():
+        raise BadInputError("output must differ from the source dataset", where=out)
+    if (out / "dataset.json").exists() and not overwrite:
+        raise BadInputError("dataset already exists (pass overwrite to replace it)", where=out / "dataset.json")
+    rng = np.random.default_rng(seed)
+    for pid in progress(src.ids(), desc="re-render pairs", unit="pair"):
+        pair = src.load(pid)
+        pp = pair.params
+        rp = pair_from_rgbd(pair.sharp, np.where(pair.valid, pair.depth_mm, 0.0), f_number=pp.f_number,
+                            focus_distance_mm=pp.focus_distance_mm, focal_length_mm=pp.focal_length_mm,
+                            pixel_pitch_mm=pp.pixel_pitch_mm, effects=eff, rng=rng, noise=noise)
+        extra = {k: v for k, v in pp.extra.items() if k not in rp.extra}
+        params = PairParams(pp.pair_id, pp.scene, pp.camera, pp.f_number, pp.focus_distance_mm, pp.focal_length_mm,
+                            pp.pixel_pitch_mm, pp.focus_point_px, pp.image_size,
+                            {**extra, **rp.extra, "source": "rgbd", "source_dataset": str(Path(source).name)})
+        write_pair(out, params, sharp=pair.sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm,
+                   coc_px=rp.coc_px, overwrite=overwrite)
+    write_index(out, {name: src.ids(name) for name in src.splits}, effects=eff.to_json(),
+                generator={"tool": "dp5k studio make-dataset --from", "seed": int(seed), "source": str(source)})
+    return out
