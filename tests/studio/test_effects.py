@@ -208,3 +208,18 @@ def test_noise_effect_raises_signal_dependent_noise() -> None:
         want = NOISE_SHOT * (1 + 3 * s) * 0.3 + (NOISE_READ * (1 + s)) ** 2
         assert a.mean() == pytest.approx(0.3, abs=1e-3)
         assert a.var() == pytest.approx(want, rel=0.08)
+
+
+def test_misregistration_in_the_raw_route_moves_only_dp_captures() -> None:
+    from dp5k_capture.sim.studio import Studio, make_rig, make_scene
+
+    rig = make_rig(40)
+    ideal = Studio(make_scene("boxes", rig), rig, supersample=1)
+    shifted = Studio(make_scene("boxes", rig), rig, EffectSet.of(misregistration=2.0), supersample=1)
+    F = ideal.focus_distance_m(0, ideal.focus_point_px(0))
+    sharp_a, sharp_b = ideal.render_views(0, 22.0, F), shifted.render_views(0, 22.0, F)
+    assert np.array_equal(sharp_a.left, sharp_b.left)  # the sharp frame defines the geometry: untouched
+    dp_a, dp_b = ideal.render_views(0, 2.8, F), shifted.render_views(0, 2.8, F)
+    H, W = dp_a.left.shape[:2]
+    dx, dy = effect_parameters("misregistration", 2.0, (W, H))["shift_px"]
+    assert np.allclose(dp_b.left, fourier_shift(dp_a.left, dx, dy), atol=1e-5)

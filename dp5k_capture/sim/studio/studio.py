@@ -27,6 +27,9 @@ from .scenes import Scene
 from .sensor import DEFAULT_SENSOR, RawExposure, SensorModel, expose_raw
 from .textures import TextureSpec
 
+MISREG_MAX_F_NUMBER = 8.0
+"""Exposures at this f-number or above (sharp f/22, structured light, ChArUco at f/8) are not misregistered."""
+
 WAVELENGTH_MM = 0.00055
 """Green wavelength for diffraction (mm)."""
 
@@ -163,6 +166,14 @@ class Studio:
         fac = effect_parameters("focus_offset", self.effects.s("focus_offset"))["focus_factor"]
         return float(focus_distance_m) * 1000.0 * fac
 
+    def effects_at(self, f_number: float) -> EffectSet:
+        """The effects acting on an exposure at ``f_number``: ``misregistration`` moves only the DP captures
+        (f-numbers below MISREG_MAX_F_NUMBER) against the sharp, structured-light and ChArUco frames, which
+        define the depth geometry."""
+        if f_number >= MISREG_MAX_F_NUMBER and self.effects.s("misregistration") > 0:
+            return EffectSet({k: v for k, v in self.effects.strengths.items() if k != "misregistration"})
+        return self.effects
+
     def render_views(self, camera: int, f_number: float, focus_distance_m: float, full: bool = False) -> DPRender:
         """Noise-free linear DP views (H, W, 3) of ``camera`` at raw resolution (diffraction included)."""
         cam = self._camera(camera)
@@ -171,7 +182,7 @@ class Studio:
         hidden = None
         if geom.hidden is not None:
             hidden = (geom.hidden_radiance(self._pattern), geom.hidden["depth_m"] * 1000.0)
-        out = render_dp(self.radiance(camera), geom.depth_m * 1000.0, lens, self.effects, full=full, hidden=hidden)
+        out = render_dp(self.radiance(camera), geom.depth_m * 1000.0, lens, self.effects_at(f_number), full=full, hidden=hidden)
         sig = diffraction_sigma_px(f_number, cam.pixel_pitch_mm)
         if sig > 0.05:
             blur = lambda a: cv2.GaussianBlur(a, (0, 0), sig, borderType=cv2.BORDER_REFLECT)  # noqa: E731
@@ -207,7 +218,7 @@ class Studio:
             "camera": cam.name, "serial": cam.serial, "model": cam.model, "lens": cam.lens,
             "f_number": float(f_number), "focus_distance_m": float(focus_distance_m),
             "shutter_s": float(shutter_s), "iso": int(iso), "aux_view": "left", "cfa": "RGGB",
-            "focal_length_mm": cam.focal_length_mm, "effects": self.effects.to_json((cam.width, cam.height)),
+            "focal_length_mm": cam.focal_length_mm, "effects": self.effects_at(f_number).to_json((cam.width, cam.height)),
         }
         return RawExposure(main, aux, self.sensor.black_level, self.sensor.white_level, self.sensor.wb_gains, meta)
 
