@@ -33,9 +33,9 @@ front_back_asymmetry        spherical-aberration-like: behind focus (C > 0) the 
                             ``1 + 1.0 s (rho / R)^2`` (rim-heavy), in front of focus ``1 + 1.0 s (1 - (rho/R)^2)``
                             (centre-heavy) and front blur is ``1 + 0.10 s`` times larger.
 misregistration             both DP views shifted against sharp/depth by ``(dx, dy) = s (0.0030 W, -0.0015 H)``
-                            (raw route: only exposures below f/8, i.e. the DP captures)
                             px of the output image (5.0, -1.7 px at 1680 x 1120; 0.86, -0.29 px at 288 x 192),
-                            a band-limited (Fourier) shift that changes neither blur nor brightness.
+                            a band-limited (Fourier) shift that changes neither blur nor brightness (raw
+                            route: only exposures below f/8, i.e. the DP captures, not the depth frames).
 noise                       signal-dependent noise stronger than nominal: shot-noise variance x (1 + 3 s)
                             and read-noise sigma x (1 + s).
 ==========================  ==========================================================================
