@@ -32,11 +32,11 @@ def processed(wall_session, tmp_path_factory):
     root, truth = wall_session
     out = tmp_path_factory.mktemp("out")
     outcomes = process_sessions(root, out, ProcessConfig())
-    return out, outcomes, truth
+    return out, outcomes, truth, root
 
 
 def test_process_writes_valid_dataset_with_accurate_depth(processed):
-    out, outcomes, truth = processed
+    out, outcomes, truth, _ = processed
     assert [o.status for o in outcomes] == ["ok"]
     reader = DatasetReader(out)
     ids = reader.ids()
@@ -100,14 +100,12 @@ def test_bad_sessions_are_reported_and_skipped(wall_session, tmp_path):
 
 
 def test_resume_skips_verified_scenes_and_redoes_tampered(processed):
-    out, _, _ = processed
-    outcomes = process_sessions(out.parent / [p for p in out.parent.iterdir() if p.name.startswith("raw")][0].name,
-                                out, ProcessConfig())
+    out, _, _, raw = processed
+    outcomes = process_sessions(raw, out, ProcessConfig())
     assert [o.status for o in outcomes] == ["skipped"]
     depth = out / "pairs" / "wall_cam0_f1.8" / "depth.png"
     depth.write_bytes(depth.read_bytes()[:-10] + b"0123456789")
-    outcomes = process_sessions(out.parent / [p for p in out.parent.iterdir() if p.name.startswith("raw")][0].name,
-                                out, ProcessConfig())
+    outcomes = process_sessions(raw, out, ProcessConfig())
     assert [o.status for o in outcomes] == ["ok"]
     DatasetReader(out).load("wall_cam0_f1.8")
 
@@ -136,3 +134,19 @@ def test_validate_depth_tilted_wall_with_hidden_board_part(tmp_path):
     assert abs(res["relative_error"] - rel_true) / rel_true < 0.10
     assert res["board_corners"] < 88  # part of the board is hidden
     assert np.degrees(np.arccos(abs(n @ np.array(res["plane_normal"])))) < 1.0
+
+
+def test_cli_process_resumes_and_validate_depth_rejects_bad_path(processed, tmp_path):
+    from click.testing import CliRunner
+
+    from dp5k_cli import main
+
+    out, _, _, raw = processed
+    res = CliRunner().invoke(main, ["-q", "process", str(raw), str(out)])
+    assert res.exit_code == 0, res.output
+    assert "skipped 1" in res.output
+    res = CliRunner().invoke(main, ["-q", "validate-depth", str(tmp_path / "nope")])
+    assert res.exit_code == 3
+    assert "manifest.json missing" in res.output
+    res = CliRunner().invoke(main, ["-q", "process", str(raw), str(tmp_path / "o"), "--size", "12by3"])
+    assert res.exit_code == 3 and "WxH" in res.output
