@@ -34,7 +34,6 @@ from .ptp.codes import (
 )
 from .ptp.datasets import DeviceInfo
 from .ptp.eos_events import EosRecord, parse_events
-from .ptp.errors import DeviceBusyError, ResponseError
 from .ptp.session import PTPSession
 
 log = logging.getLogger(__name__)
@@ -267,4 +266,4 @@ class EosCamera:
         return self.download(self.wait_object())
 
 
-__all__ = ["EosCamera", "CaptureTiming", "Download", "DeviceBusyError", "ResponseError"]
+__all__ = ["EosCamera", "CaptureTiming", "Download", "EosState"]

@@ -9,7 +9,6 @@ the real layout: one configuration, interface 0 class 6/1/1, bulk IN 0x81, bulk 
 from __future__ import annotations
 
 import array
-import errno
 from types import SimpleNamespace
 from typing import Any
 

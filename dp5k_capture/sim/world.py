@@ -20,13 +20,12 @@ from typing import Any
 import cv2
 import numpy as np
 import tifffile
-import usb.core
 from numpy.typing import NDArray
 
 from dp5k_common.rawfile import write_dual_pixel_dng
 
 from ..display import PatternWindow
-from ..rig import BodyConfig, ProjectorConfig, RigConfig
+from ..rig import RigConfig
 from .eos_body import BodyFaults, ExposureSettings, SimulatedEOS
 from .projector import SimulatedEBU42
 from .usb_backend import SimUsbBackend
@@ -305,4 +304,4 @@ def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[Sim
     return SimRig(rig, backend, bodies, devs, projector, window, optics)
 
 
-__all__ = ["SimRig", "make_sim_rig", "FlatOptics", "dng_bytes", "SIM_SERIALS", "ProjectorConfig", "usb"]
+__all__ = ["SimRig", "make_sim_rig", "FlatOptics", "StudioOptics", "dng_bytes", "SIM_SERIALS"]
