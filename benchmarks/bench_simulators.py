@@ -1,0 +1,148 @@
+"""Speed of every DP simulator, Neural DP inference at 1680 x 1120 with its peak memory, training throughput.
+
+Usage::
+
+    python benchmarks/bench_simulators.py [--device cpu|cuda] [--peer-size 840x560] [--quick]
+
+Prints a Markdown table (docs/simulators.md keeps the last run's numbers). The scene is synthetic: a
+textured image, a depth ramp from 0.5 m to 10 m focused at 2 m, and the DP5K optics (85 mm, f/1.8,
+36 mm sensor), so CoC diameters span the paper's range scaled to the image width. Peak memory is the CUDA
+allocator's peak on GPU, and the growth of the process's peak RSS on CPU (measured in a fresh process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dp5k_common.optics import coc_diameter_px  # noqa: E402
+from neural_dp.batch import DPBatch  # noqa: E402
+from neural_dp.losses import dp_loss  # noqa: E402
+from neural_dp.model import ModelConfig  # noqa: E402
+from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs  # noqa: E402
+from neural_dp.simulators.registry import PEERS, base_available, get_simulator  # noqa: E402
+
+
+def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:
+    """A textured image with a left-to-right depth ramp (0.5 m .. 10 m, focus 2 m), DP5K optics at f/1.8."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:H, :W] / max(H, W)
+    tex = 0.5 + 0.25 * np.sin(40 * xx[..., None] * np.array([1, 1.3, 0.7])) * np.cos(31 * yy[..., None])
+    sharp = np.clip(tex + rng.normal(0, 0.05, (H, W, 3)), 0, 1).astype(np.float32)
+    depth = np.tile(np.geomspace(500, 10000, W), (H, 1)).astype(np.float32)
+    pitch = 36.0 / W
+    coc = coc_diameter_px(depth, 2000.0, 85.0, 1.8, pitch).astype(np.float32)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    z = torch.zeros(1)
+    return DPBatch(sharp=t(sharp.transpose(2, 0, 1))[None], coc_px=t(coc)[None, None], depth_mm=t(depth)[None, None],
+                   valid=torch.ones(1, 1, H, W, dtype=torch.bool), f_number=z + 1.8, focus_distance_mm=z + 2000,
+                   focal_length_mm=z + 85, pixel_pitch_mm=z + pitch, focus_point_px=torch.zeros(1, 2)).to(device)
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_call(fn, device: str, repeat: int) -> float:
+    fn()
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        fn()
+    sync(device)
+    return (time.perf_counter() - t0) / repeat
+
+
+def neural_inference(device: str, W: int, H: int, channels: int) -> dict[str, float]:
+    """Run in a fresh process on CPU so the peak RSS belongs to this measurement alone."""
+    sim = NeuralDPSimulator(ModelConfig(base_channels=channels)).to(device).eval()
+    batch = scene(W, H, device)
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with torch.no_grad():
+        t = time_call(lambda: sim(batch), device, 1)
+    peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
+            else (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024)
+    return {"seconds": t, "mp_per_s": W * H / 1e6 / t, "peak_mib": peak}
+
+
+def train_throughput(device: str, crop: int, batch: int, channels: int, steps: int) -> float:
+    sim = NeuralDPSimulator(ModelConfig(base_channels=channels)).to(device).train()
+    opt = torch.optim.Adam(sim.net.parameters(), lr=5e-4)
+    b = scene(crop, crop, device)
+    b = DPBatch(**{k: (v.expand(batch, *v.shape[1:]).contiguous() if isinstance(v, torch.Tensor) else v)
+                   for k, v in b.__dict__.items()})
+    left_gt = right_gt = 0.5 * b.sharp
+    mask = b.valid.float()
+
+    def step() -> None:
+        left, right = sim.net(b.sharp, model_inputs(b, 10.0))
+        loss = dp_loss(left, right, left_gt, right_gt, mask)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    return batch / time_call(step, device, steps)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--peer-size", default="840x560", help="WxH for the handcrafted simulators")
+    ap.add_argument("--neural-size", default="1680x1120")
+    ap.add_argument("--channels", type=int, default=64, help="U-Net base channels (paper: 64)")
+    ap.add_argument("--train-crop", type=int, default=256)
+    ap.add_argument("--train-batch", type=int, default=8)
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
+    ap.add_argument("--_neural_child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.peer_size, args.neural_size, args.channels, args.train_crop, args.train_batch = "192x128", "384x256", 16, 64, 2
+    pw, ph = (int(v) for v in args.peer_size.split("x"))
+    nw, nh = (int(v) for v in args.neural_size.split("x"))
+    if args._neural_child:
+        print(json.dumps(neural_inference(args.device, nw, nh, args.channels)))
+        return 0
+    torch.manual_seed(0)
+    rows = []
+    batch = scene(pw, ph, args.device)
+    coc = batch.coc_px.abs()
+    names = list(PEERS) + (["base"] if base_available() else [])
+    for name in names:
+        sim = get_simulator(name).to(args.device)
+        with torch.no_grad():
+            t = time_call(lambda: sim(batch), args.device, args.repeat)
+        rows.append((name, f"{pw}x{ph}", pw * ph / 1e6 / t, t, float("nan")))
+    child = subprocess.run([sys.executable, __file__, "--_neural_child", "--device", args.device, "--neural-size",
+                            args.neural_size, "--channels", str(args.channels)], capture_output=True, text=True, check=True)
+    nres = json.loads(child.stdout.strip().splitlines()[-1])
+    rows.append(("neural (inference)", f"{nw}x{nh}", nres["mp_per_s"], nres["seconds"], nres["peak_mib"]))
+    sps = train_throughput(args.device, args.train_crop, args.train_batch, args.channels, args.repeat)
+    dev = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU, {torch.get_num_threads()} threads"
+    print(f"device: {dev}; torch {torch.__version__}; peer scene |CoC| max {float(coc.max()):.1f} px, "
+          f"median {float(coc.median()):.1f} px")
+    print("| simulator | size | MP/s | s/image | peak MiB |")
+    print("|---|---|---|---|---|")
+    for name, size, mps, t, mem in rows:
+        print(f"| {name} | {size} | {mps:.3f} | {t:.2f} | {'' if np.isnan(mem) else f'{mem:.0f}'} |")
+    print(f"\nNeural DP training: {sps:.2f} samples/s ({args.train_crop}x{args.train_crop} crops, batch "
+          f"{args.train_batch}, base channels {args.channels})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

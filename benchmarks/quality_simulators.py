@@ -1,0 +1,74 @@
+"""Full Table-2-style comparison on studio data with realistic effects (the run docs/simulators.md reports).
+
+Steps: render a studio dataset with planted physical effects (``dp5k studio make-dataset``), train the
+Neural DP Simulator on its train split (``dp5k train``), evaluate every simulator on the held-out test
+split (``dp5k evaluate``), print the Markdown table and the settings.
+
+Usage::
+
+    python benchmarks/quality_simulators.py OUT [--scenes 12] [--size 192x128] [--epochs 12] [--device cpu]
+
+Everything it writes goes under OUT (dataset, run folder with checkpoints, evaluation with figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dp5k_capture.sim.studio.dataset import make_dataset  # noqa: E402  (benchmarks may use the world)
+from neural_dp.config import load_config  # noqa: E402
+from neural_dp.evaluate import evaluate  # noqa: E402
+from neural_dp.simulators.registry import available_simulators  # noqa: E402
+from neural_dp.train import train  # noqa: E402
+
+EFFECTS = {"lr_gain_imbalance": 1.0, "psf_profile": 1.0, "disparity_scale": 1.0, "field_varying_psf": 1.0,
+           "chromatic_defocus": 1.0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--scenes", type=int, default=12)
+    ap.add_argument("--size", default="192x128")
+    ap.add_argument("--epochs", type=int, default=12)
+    ap.add_argument("--samples-per-epoch", type=int, default=128)
+    ap.add_argument("--crop", type=int, default=128)
+    ap.add_argument("--channels", type=int, default=16)
+    ap.add_argument("--levels", type=int, default=4)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    W, H = (int(v) for v in args.size.split("x"))
+    ds = args.out / "studio"
+    t0 = time.perf_counter()
+    if not (ds / "dataset.json").is_file():
+        make_dataset(ds, scenes=args.scenes, effects=EFFECTS, size=(W, H), seed=args.seed)
+    t_data = time.perf_counter() - t0
+    overrides = [f"device={args.device}", f"seed={args.seed}", f"data.crop_px={args.crop}", "data.batch_size=4",
+                 f"data.samples_per_epoch={args.samples_per_epoch}", f"model.base_channels={args.channels}",
+                 f"model.levels={args.levels}", f"optim.epochs={args.epochs}", f"optim.lr={args.lr}"]
+    cfg = load_config(None, overrides)
+    t0 = time.perf_counter()
+    run = train(ds, args.out / "run", cfg)
+    t_train = time.perf_counter() - t0
+    res = evaluate(ds, args.out / "eval", split="test", simulators=available_simulators(with_neural=True),
+                   checkpoint=args.out / "run" / "best.pt", device=args.device, figures=2)
+    settings = {"effects": EFFECTS, "scenes": args.scenes, "size": [W, H], "train_overrides": overrides,
+                "best_epoch": run.best_epoch, "best_val_ssim": run.best_val_ssim, "steps": run.steps,
+                "seconds": {"dataset": round(t_data, 1), "train": round(t_train, 1)}}
+    (args.out / "settings.json").write_text(json.dumps(settings, indent=2))
+    print(res.table_md)
+    print(json.dumps(settings, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
