@@ -189,3 +189,16 @@ def test_cli_devices_lists_the_simulated_rig() -> None:
 def test_cli_verify_rejects_a_folder_without_manifest(tmp_path: Path) -> None:
     res = CliRunner().invoke(main, ["verify", str(tmp_path)])
     assert res.exit_code == 3 and "no manifest.json" in res.output
+
+
+def test_cli_real_rig_errors_are_one_line_and_write_nothing(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[projector]\nport = "/nonexistent/ttyUSB7"\n')
+    out = tmp_path / "raw"
+    res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--rig", str(rig)])
+    assert res.exit_code == 5, res.output
+    assert "dp5k: error: projector (/nonexistent/ttyUSB7): cannot open serial port" in res.output
+    assert not (out / "s1" / "manifest.json").exists()
+    rig.write_text("[exposure]\nsharp_f_number = 0.5\n")
+    res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--rig", str(rig), "--dry-run"])
+    assert res.exit_code == 3 and "f/0.5" in res.output
