@@ -28,7 +28,7 @@ def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None =
     sim = make_sim_rig(RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
     try:
         writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True})
-        proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01))
+        proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01, default_s=0.5))
         if before:
             before(sim)
         bodies = open_bodies(sim.rig, backend=sim.backend, config=FAST_SESSION, timing=FAST)
@@ -202,3 +202,24 @@ def test_cli_real_rig_errors_are_one_line_and_write_nothing(tmp_path: Path) -> N
     rig.write_text("[exposure]\nsharp_f_number = 0.5\n")
     res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--rig", str(rig), "--dry-run"])
     assert res.exit_code == 3 and "f/0.5" in res.output
+
+
+def test_projector_falls_silent_mid_scene_then_resume(tmp_path: Path) -> None:
+    def silence_after_dp(sim: SimRig) -> None:
+        expose = sim.optics.expose
+
+        def hooked(settings):  # noqa: ANN001, ANN202
+            if len(sim.optics.exposures) == 17:  # the last DP/sharp frame: next step unblanks the projector
+                sim.projector.faults.silent = True
+            return expose(settings)
+
+        sim.optics.expose = hooked
+
+    from dp5k_common.errors import DeviceTimeoutError
+
+    with pytest.raises(DeviceTimeoutError, match=r"projector \(/dev/pts/\d+\): unblank projector: 'MUTE OFF': no ':' prompt"):
+        _run(tmp_path, before=silence_after_dp)
+    m = json.loads((tmp_path / "s1/manifest.json").read_text())
+    assert len(m["files"]) == 18 and all(f["kind"] != "sl" for f in m["files"])
+    n, _ = _run(tmp_path)
+    assert n == 110 - 18
