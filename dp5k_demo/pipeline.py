@@ -1,0 +1,201 @@
+"""The demo's stages, each run through the same click command a user would type.
+
+Stages (in order): simulated capture of a few scenes and a wall, ``process``, ``validate-depth``, a studio
+training set with realistic effects, a short ``train``, ``evaluate`` of every simulator, ``diagnose`` of the
+base model and of the Neural DP Simulator on a dataset with a hidden effect, and ``synthesize`` on RGBD
+frames. :mod:`dp5k_demo.figures` and :mod:`dp5k_demo.build_report` turn the outputs into the report.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dp5k_common.effects import EFFECT_NAMES
+from dp5k_common.errors import StageError
+
+from .stages import Stage
+
+
+@dataclass(frozen=True)
+class DemoScale:
+    """Sizes of one demo scale.
+
+    Attributes:
+        name: small / medium / paper.
+        sim_scale: studio scale for the simulated capture (sensor downscale factor or a named scale).
+        scenes: captured scenes (presets) besides the wall.
+        train_scenes: random studio scenes in the training set (each gives one pair per f-number).
+        train_size: (W, H) of the studio training and diagnosis datasets.
+        f_numbers: f-numbers of the studio datasets.
+        epochs: training epochs.
+        crop: training crop in px.
+        diag_scenes: scenes of the hidden-effect dataset.
+        rgbd_frames: RGBD frames given to ``synthesize``.
+    """
+
+    name: str
+    sim_scale: str
+    scenes: tuple[str, ...]
+    train_scenes: int
+    train_size: tuple[int, int]
+    f_numbers: str
+    epochs: int
+    crop: int
+    diag_scenes: int
+    rgbd_frames: int
+
+
+SCALES: dict[str, DemoScale] = {
+    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2),
+    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4),
+    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "living"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8),
+}
+
+# Realistic effects for the training data (the world is not the ideal model): Canon-like weak disparity,
+# Pixel-like L/R imbalance, a soft non-flat disc and sensor noise.
+TRAIN_EFFECTS = ("disparity_scale=1", "lr_gain_imbalance=1", "psf_profile=1")
+
+
+def run_cli(args: list[str]) -> None:
+    """Run one ``dp5k`` sub-command in-process exactly as the CLI would, letting dp5k errors propagate."""
+    from dp5k_cli import main
+
+    name = args[0]
+    command = main.commands.get(name)
+    if command is None:
+        raise StageError(f"this dp5k has no '{name}' command", where="demo")
+    command.main(args[1:], prog_name=f"dp5k {name}", standalone_mode=False, obj={"verbose": 0})
+
+
+def hidden_effect(seed: int) -> str:
+    """The effect hidden in the diagnosis dataset, drawn from ``seed`` (the report reveals it at the end)."""
+    rng = np.random.default_rng(seed)
+    return str(EFFECT_NAMES[int(rng.integers(len(EFFECT_NAMES)))])
+
+
+def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
+    """The demo's stages for ``scale``, writing under ``out``."""
+    raw = out / "raw"
+    processed = out / "processed"
+    train_ds = out / "studio-train"
+    diag_ds = out / "studio-hidden"
+    run_dir = out / "neural_dp"
+    rgbd = out / "rgbd-frames"
+    effect = hidden_effect(seed)
+
+    def capture(ctx: dict[str, Any]) -> dict[str, Any]:
+        for scene in (*scale.scenes, "wall"):
+            manifest = raw / scene / "manifest.json"
+            if not (manifest.is_file() and json.loads(manifest.read_text()).get("complete")):
+                run_cli(["capture", "--scene", scene, "--sim", "--out", str(raw), "--sim-scale", scale.sim_scale, "--seed", str(seed)])
+            run_cli(["verify", str(raw / scene)])  # a finished scene from an earlier run is checked, not recaptured
+        return {"raw": str(raw), "scenes": list(scale.scenes), "wall": "wall"}
+
+    def process(ctx: dict[str, Any]) -> dict[str, Any]:
+        staging = out / "raw-scenes"
+        # process every captured scene except the wall (the wall is for validate-depth)
+        staging.mkdir(parents=True, exist_ok=True)
+        for scene in scale.scenes:
+            link = staging / scene
+            if not link.exists():
+                link.symlink_to((raw / scene).resolve(), target_is_directory=True)
+        run_cli(["process", str(staging), str(processed), "--seed", str(seed)])
+        return {"dataset": str(processed)}
+
+    def validate(ctx: dict[str, Any]) -> dict[str, Any]:
+        vout = out / "validate-depth"
+        run_cli(["validate-depth", str(raw / "wall"), "--out", str(vout)])
+        return {"out": str(vout)}
+
+    def studio_train(ctx: dict[str, Any]) -> dict[str, Any]:
+        args = ["studio", "make-dataset", str(train_ds), "--scenes", str(scale.train_scenes),
+                "--size", f"{scale.train_size[0]}x{scale.train_size[1]}", "--f-numbers", scale.f_numbers,
+                "--seed", str(seed + 1)]
+        for e in TRAIN_EFFECTS:
+            args += ["--effect", e]
+        run_cli(args)
+        return {"dataset": str(train_ds), "effects": list(TRAIN_EFFECTS)}
+
+    def train(ctx: dict[str, Any]) -> dict[str, Any]:
+        run_cli(["train", str(train_ds), "--out", str(run_dir), "--epochs", str(scale.epochs),
+                 "--crop", str(scale.crop), "--device", "cpu", "--seed", str(seed)])
+        return {"run": str(run_dir), "checkpoint": str(run_dir / "best.pt")}
+
+    def evaluate(ctx: dict[str, Any]) -> dict[str, Any]:
+        ckpt = run_dir / "best.pt"
+        results = {}
+        for name, ds in (("studio", train_ds), ("processed", processed)):
+            eout = out / f"evaluate-{name}"
+            split = "test" if name == "studio" else _nonempty_split(ds)
+            run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), "--checkpoint", str(ckpt)])
+            results[name] = {"out": str(eout), "split": split}
+        return results
+
+    def hidden(ctx: dict[str, Any]) -> dict[str, Any]:
+        run_cli(["studio", "make-dataset", str(diag_ds), "--scenes", str(scale.diag_scenes),
+                 "--size", f"{scale.train_size[0]}x{scale.train_size[1]}", "--f-numbers", scale.f_numbers,
+                 "--seed", str(seed + 2), "--effect", f"{effect}=1"])
+        return {"dataset": str(diag_ds)}
+
+    def diagnose_base(ctx: dict[str, Any]) -> dict[str, Any]:
+        dout = out / "diagnose-base"
+        run_cli(["diagnose", str(diag_ds), "--model", "base", "--out", str(dout)])
+        return {"out": str(dout)}
+
+    def diagnose_neural(ctx: dict[str, Any]) -> dict[str, Any]:
+        dout = out / "diagnose-neural"
+        run_cli(["diagnose", str(diag_ds), "--model", f"neural:{run_dir / 'best.pt'}", "--out", str(dout)])
+        return {"out": str(dout)}
+
+    def synthesize(ctx: dict[str, Any]) -> dict[str, Any]:
+        from .rgbd import write_rgbd_frames
+
+        write_rgbd_frames(diag_ds, rgbd, scale.rgbd_frames)
+        sout = out / "synthesized"
+        run_cli(["synthesize", str(rgbd), str(sout), "--simulator", "neural", "--checkpoint", str(run_dir / "best.pt"),
+                 "--encoding", "linear", "--seed", str(seed)])
+        return {"in": str(rgbd), "out": str(sout)}
+
+    def report(ctx: dict[str, Any]) -> dict[str, Any]:
+        from .build_report import build_report
+
+        path = build_report(out, scale, ctx["records"], hidden=effect)
+        return {"report": str(path)}
+
+    return [
+        Stage("capture", "Simulated capture (PTP bodies + ESC/VP21 projector + virtual studio)", capture,
+              "check `dp5k capture --sim --scene demo01` on its own; delete OUT/raw/<scene> only if its manifest is corrupt"),
+        Stage("process", "Processing raw sessions into dataset format v1", process,
+              "run `dp5k -v process OUT/raw-scenes OUT/processed` to see which scene failed and why"),
+        Stage("validate_depth", "Depth validation against a ChArUco wall (Eq. 4)", validate,
+              "run `dp5k -v validate-depth OUT/raw/wall`"),
+        Stage("studio_train", "Studio training data with realistic effects", studio_train,
+              "run `dp5k -v studio make-dataset` with the same arguments"),
+        Stage("train", "Short Neural DP Simulator training", train,
+              "run `dp5k -v train OUT/studio-train --out OUT/neural_dp`; delete OUT/neural_dp to start over"),
+        Stage("evaluate", "Evaluation of every simulator (Table 2)", evaluate,
+              "run `dp5k -v evaluate OUT/studio-train --checkpoint OUT/neural_dp/best.pt`"),
+        Stage("hidden_effect", "A dataset with a hidden physical effect", hidden,
+              "run `dp5k -v studio make-dataset OUT/studio-hidden` with the same arguments"),
+        Stage("diagnose_base", "Diagnosis of the physical base model", diagnose_base,
+              "run `dp5k -v diagnose OUT/studio-hidden --model base`"),
+        Stage("diagnose_neural", "Diagnosis of the Neural DP Simulator", diagnose_neural,
+              "run `dp5k -v diagnose OUT/studio-hidden --model neural:OUT/neural_dp/best.pt`"),
+        Stage("synthesize", "Synthesis of DP pairs from RGBD frames", synthesize,
+              "run `dp5k -v synthesize OUT/rgbd-frames OUT/synthesized`"),
+        Stage("report", "Report", report, "rerun `dp5k -v demo OUT` (finished stages are reused)"),
+    ]
+
+
+def _nonempty_split(dataset: Path) -> str:
+    """The first non-empty split of a dataset, preferring test (a tiny processed set may have an empty test)."""
+    index = json.loads((dataset / "dataset.json").read_text())
+    for name in ("test", "val", "train"):
+        if index["splits"].get(name):
+            return name
+    raise StageError("the dataset has no pairs", where=dataset)
