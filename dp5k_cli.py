@@ -59,7 +59,8 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     ctx.obj["verbose"] = verbose
     level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
-    set_progress_enabled(not quiet)
+    if quiet:  # DP5K_PROGRESS=0 in the environment also hides them (CI logs)
+        set_progress_enabled(False)
 
 
 def _register() -> None:
