@@ -19,10 +19,13 @@ fronto-parallel plane is blurred with its exact Eq. 6 CoC. Layers are composited
 coverage:
 
 .. math::  O = \frac{\sum_k T_k (H_k * \alpha_k I)}{\sum_k T_k (H_k * \alpha_k)}, \qquad
-           T_k = \prod_{j < k,\ |b_j - b_k| > 1} (1 - H_j * \alpha_j)
+           T_k = \prod_{groups\ G} \mathrm{clip}(1 - \sum_{j \in G} H_j * \alpha_j, 0, 1)
 
-where a layer is not occluded by the layer of the adjacent CoC bin ``b`` just before it (that is the
-same continuous surface cut in two, and occluding it would draw seams);
+where a layer is only occluded by nearer layers whose blur clearly differs from its own
+(``C_k - C_j > max(2 px, 0.25 max(|C_j|, |C_k|))``): nearer layers of nearly the same blur are the same
+continuous surface cut into bins (occluding them would draw seams), or so close in depth that occlusion
+changes nothing visible. Layers that start occluding together form one group ``G`` whose alphas add, so
+the seams between the bins of one surface stay opaque to what lies behind;
 
 so a blurred foreground spills over the background but a blurred background never spills over a sharp
 foreground. Layers whose blur radius exceeds 16 px are blurred at a 2^k-times reduced resolution through
@@ -197,10 +200,28 @@ def _pyr_up(a: F32, s: int) -> F32:
     return a
 
 
-def _commit(T: F32, pend: tuple) -> None:
-    """Multiply a layer's (1 - blurred alpha) into the transmittance ``T`` over its box."""
-    _, y0, y1, x0, x1, factor = pend
-    T[y0:y1, x0:x1] *= factor
+OCCLUDE_MIN_PX = 2.0
+OCCLUDE_REL = 0.25
+
+
+def _occludes(c_near_px: float, c_far_px: float) -> bool:
+    """Whether a layer of signed CoC ``c_near`` occludes one of ``c_far`` (behind it): their blurs must
+    differ by more than ``max(2 px, 25 %)``; closer layers are the same surface continued, or so close in
+    depth that occlusion changes nothing visible."""
+    return (c_far_px - c_near_px) > max(OCCLUDE_MIN_PX, OCCLUDE_REL * max(abs(c_near_px), abs(c_far_px)))
+
+
+def _commit(T: F32, group: list[tuple]) -> None:
+    """Multiply a group of pending layers into the transmittance ``T``: as one surface, their blurred
+    alphas add (``T *= clip(1 - sum(alpha), 0, 1)``), so seams between its depth bins stay opaque."""
+    y0 = min(p[1] for p in group)
+    y1 = max(p[2] for p in group)
+    x0 = min(p[3] for p in group)
+    x1 = max(p[4] for p in group)
+    total = np.zeros((y1 - y0, x1 - x0, group[0][5].shape[2]), np.float32)
+    for _, a0, a1, b0, b1, ba in group:
+        total[a0 - y0 : a1 - y0, b0 - x0 : b1 - x0] += ba
+    T[y0:y1, x0:x1] *= np.clip(1.0 - total, 0.0, 1.0)
 
 
 def _layer_index(key: NDArray[np.floating]) -> NDArray[np.int32]:
@@ -281,7 +302,18 @@ def render_dp(
         ok = np.isfinite(hz) & (hz > 0)
         h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
         h_lid = _layer_index(h_coc[:, :, 1])
-        ok &= (np.abs(h_lid - lid) > 1) & (hz > zsort)
+        cf, chd = coc[:, :, 1], h_coc[:, :, 1]
+        ok &= (hz > zsort) & ((chd - cf) > np.maximum(OCCLUDE_MIN_PX, OCCLUDE_REL * np.maximum(np.abs(cf), np.abs(chd))))
+        # a hidden surface can only show within the front surface's blur radius of its silhouette
+        jump = np.zeros(cf.shape, bool)
+        dx = np.abs(np.diff(cf, axis=1)) > OCCLUDE_MIN_PX
+        dy = np.abs(np.diff(cf, axis=0)) > OCCLUDE_MIN_PX
+        jump[:, 1:] |= dx
+        jump[:, :-1] |= dx
+        jump[1:, :] |= dy
+        jump[:-1, :] |= dy
+        dist = cv2.distanceTransform((~jump).astype(np.uint8), cv2.DIST_L2, 3)
+        ok &= dist <= np.abs(cf) / 2.0 + 2.0
         h_flat = np.nonzero(ok.ravel())[0]
         h_img = pad2(np.asarray(h_rad, dtype=np.float32))
         all_lid = np.concatenate([lid.ravel(), h_lid.ravel()[h_flat]])
@@ -307,7 +339,7 @@ def render_dp(
     chroma = effects is not None and eff.s("chromatic_defocus") > 0
     nT = 3 if chroma else 1  # one transmittance for all colours unless their kernels differ
     T = {h: np.ones((H, W, nT), np.float32) for h in halves}
-    pending: dict[str, tuple] = {}
+    pending: dict[str, list] = {}
     for li in np.argsort(zmean, kind="stable"):
         members = order[starts[li] : starts[li + 1]]
         is_front = members < n_front
@@ -362,18 +394,19 @@ def render_dp(
                 if ba.ndim == 2:
                     ba = ba[:, :, None]
             np.clip(ba, 0.0, 1.0, out=ba)
-            # the neighbouring depth bin is the same surface, not an occluder: its alpha joins the
-            # transmittance one layer late (a continuous surface cut into bins shows no seams)
-            pend = pending.get(hname)
-            if pend is not None and abs(pend[0] - ids[li]) > 1:
-                _commit(T[hname], pend)
-                pend = None
+            # nearer layers whose blur is close to this one's are the same surface continued, not
+            # occluders: they join the transmittance, as one group, once a layer clearly behind comes
+            waiting = pending.setdefault(hname, [])
+            c_here = float(c3[1])
+            group = [p for p in waiting if _occludes(p[0], c_here)]
+            if group:
+                _commit(T[hname], group)
+                waiting = [p for p in waiting if not _occludes(p[0], c_here)]
             Tv = T[hname][y0:y1, x0:x1]
             acc[hname][y0:y1, x0:x1] += Tv * bc
             cov_acc[hname][y0:y1, x0:x1] += Tv * ba
-            if pend is not None:
-                _commit(T[hname], pend)
-            pending[hname] = (ids[li], y0, y1, x0, x1, 1.0 - ba)
+            waiting.append((c_here, y0, y1, x0, x1, ba))
+            pending[hname] = waiting
     out = {}
     crop = (slice(P, H - P), slice(P, W - P))
     for hname in halves:
