@@ -45,6 +45,7 @@ class PatternWindow:
         except pygame.error as exc:
             raise DeviceError(f"cannot open the pattern window ({exc})", where=f"display {display_index}") from None
         self.shown: int | None = None
+        self._frame: NDArray[np.uint8] | None = None
 
     def show(self, image: NDArray[np.uint8], tag: int | None = None) -> None:
         """Put a uint8 (height, width) or (height, width, 3) image on screen, flip, wait ``settle_s``."""
@@ -56,14 +57,22 @@ class PatternWindow:
         self._pg.surfarray.blit_array(self.surface, np.ascontiguousarray(img.transpose(1, 0, 2)))
         self._pg.display.flip()
         self._pg.event.pump()
+        self._frame = None  # the screen changed: read it back again on the next frame()
         self.shown = tag
         if self.settle_s > 0:
             time.sleep(self.settle_s)
 
     def frame(self) -> NDArray[np.uint8]:
-        """What the window shows now: uint8 (height, width) grey (the red channel)."""
-        arr = self._pg.surfarray.array3d(self.surface)  # (W, H, 3)
-        return np.ascontiguousarray(arr[:, :, 0].T)
+        """What the window shows now: uint8 (height, width) grey (the red channel), read back from the surface
+        once per flip."""
+        if self._frame is None:
+            red = self._pg.surfarray.pixels_red(self.surface)  # (W, H) view, locks the surface
+            try:
+                self._frame = np.ascontiguousarray(red.T)
+                self._frame.setflags(write=False)
+            finally:
+                del red
+        return self._frame
 
     def close(self) -> None:
         self._pg.display.quit()
