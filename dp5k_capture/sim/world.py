@@ -137,10 +137,26 @@ class StudioOptics:
         cams = self.srig.cameras
         self.serials = [c.serial for c in cams]
         self.raw_sizes_px = [(c.width, c.height) for c in cams]
-        self.focus_points_px = [tuple(int(v) for v in self.studio.focus_point_px(i)) for i in range(2)]
+        self.focus_points_px = [self._focus_point_px(i) for i in range(2)]
         self._shown: bytes | None = b"unset"
         self.board_poses: dict[int, tuple[list[list[float]], list[float]]] = {}
         self.focus_m: dict[int, float] = {}
+
+    def _focus_point_px(self, camera: int) -> tuple[int, int]:
+        """Where body ``camera`` focuses: the scene's focus target projected into it, or, when something
+        nearer hides the target in this view, the nearest pixel that sees the target's depth (within 2 %),
+        so both bodies focus on the same surface as an operator would place their AF points."""
+        x, y = self.studio.focus_point_px(camera)
+        cam = self.srig.cameras[camera]
+        z_target = float((cam.R @ np.asarray(self.studio.scene.focus_target_m, dtype=np.float64) + cam.t)[2])
+        if abs(self.studio.focus_distance_m(camera, (x, y)) - z_target) <= 0.03 * z_target:
+            return int(x), int(y)
+        depth = np.asarray(self.studio.ground_truth(camera)["depth_m"], dtype=np.float64)
+        ys, xs = np.nonzero(np.abs(depth - z_target) <= 0.02 * z_target)
+        if xs.size == 0:
+            return int(x), int(y)
+        j = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
+        return int(xs[j]), int(ys[j])
 
     def _index(self, serial: str) -> int:
         return self.serials.index(serial)

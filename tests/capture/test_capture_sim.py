@@ -165,6 +165,8 @@ def test_dp5k_capture_sim_demo01_end_to_end(tmp_path: Path) -> None:
     truth = json.loads((gt / "truth.json").read_text())
     cam0 = truth["cameras"]["cam0"]
     assert cam0["focus_distance_recorded_m"] > 0.5 and len(truth["board_poses"]) == 3
+    cam1 = truth["cameras"]["cam1"]  # both bodies focus on the same surface (the scene's focus target)
+    assert cam1["focus_distance_recorded_m"] == pytest.approx(cam0["focus_distance_recorded_m"], rel=0.05)
     assert (gt / "cam0_depth_mm.png").is_file() and (gt / "cam1_proj_xy.npy").is_file()
     m = json.loads((out / "demo01/manifest.json").read_text())
     assert m["focus_point_px"]["cam0"] == cam0["focus_point_px"]
