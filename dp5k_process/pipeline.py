@@ -180,7 +180,7 @@ def depth_for_camera(
     coarsest = n_scales - 1
     coarse_other = code_view(*decs[other].at_scale(coarsest), decs[other].scale_size(coarsest), cfg.tri, coarsest)
     depths, info = [], {"per_scale_coverage": []}
-    for s in range(n_scales):
+    for s in range(min(n_scales, cfg.filt.fill_steps)):  # scales Eq. 3 does not reach are not computed
         v_ref = code_view(*decs[ref].at_scale(s), decs[ref].scale_size(s), cfg.tri, s)
         v_oth = coarse_other if s == coarsest else code_view(*decs[other].at_scale(s), decs[other].scale_size(s), cfg.tri, s)
         q, ok = match_in_other(v_ref, v_oth, cfg.tri, coarse=coarse_other)

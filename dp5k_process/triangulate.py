@@ -29,15 +29,6 @@ def normalised_rays(cam: CameraCalibration) -> NDArray[np.float32]:
     return cv2.undistortPoints(pts, cam.K, cam.dist).reshape(H, W, 2).astype(np.float32)
 
 
-def footprint_px(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], proj_w: int) -> float:
-    """Mean side, in camera pixels, of the camera area one projector pixel covers: sqrt(valid pixels / codes)."""
-    nv = int(valid.sum())
-    if nv == 0:
-        return 1.0
-    codes = np.unique(row[valid].astype(np.int64) * proj_w + col[valid])
-    return float(np.sqrt(nv / max(1, codes.size)))
-
-
 def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: float, min_support: float = 0.3
                 ) -> NDArray[np.float32]:
     r"""Valid-only Gaussian mean of an integer code (normalised convolution), a sub-pixel projector coordinate.
@@ -61,20 +52,21 @@ def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: flo
 
 def bucket_centroids_px(
     col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], proj_size: tuple[int, int]
-) -> NDArray[np.float32]:
-    """Mean pixel position (x, y) of the camera pixels of each projector pixel, (Hp, Wp, 2), NaN where none.
+) -> tuple[NDArray[np.float32], int]:
+    """Mean pixel position (x, y) of the camera pixels of each projector pixel, (Hp, Wp, 2), NaN where none,
+    and the number of distinct projector pixels seen.
 
     This is 3DUNDERWORLD's bucket, averaged instead of enumerating all pixel pairs (linear, ``np.bincount``).
     """
     Wp, Hp = proj_size
-    H, W = valid.shape
     ys, xs = np.nonzero(valid)
     idx = row[ys, xs].astype(np.int64) * Wp + col[ys, xs]
-    n = np.bincount(idx, minlength=Wp * Hp).astype(np.float64)
-    sx = np.bincount(idx, weights=xs, minlength=Wp * Hp)
-    sy = np.bincount(idx, weights=ys, minlength=Wp * Hp)
+    n = np.bincount(idx, minlength=Wp * Hp).astype(np.float32)
+    cen = np.empty((Hp, Wp, 2), np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.stack([sx / n, sy / n], -1).reshape(Hp, Wp, 2).astype(np.float32)
+        cen[..., 0] = (np.bincount(idx, weights=xs, minlength=Wp * Hp).astype(np.float32) / n).reshape(Hp, Wp)
+        cen[..., 1] = (np.bincount(idx, weights=ys, minlength=Wp * Hp).astype(np.float32) / n).reshape(Hp, Wp)
+    return cen, int(np.count_nonzero(n))
 
 
 def _remap(img: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -179,7 +171,8 @@ class CodeView:
 def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_],
               proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig(), scale: int = 0) -> CodeView:
     """Smooth codes, their gradients and bucket centroids of one camera at projector scale ``2^-scale``."""
-    fp = footprint_px(col, row, valid, proj_size[0])
+    cen, n_codes = bucket_centroids_px(col, row, valid, proj_size)
+    fp = float(np.sqrt(valid.sum() / n_codes)) if n_codes else 1.0  # camera px per projector px (side)
     sigma = max(0.7, cfg.sigma_factor * fp)
     u = smooth_code(col, valid, sigma)
     v = smooth_code(row, valid, sigma)
@@ -188,7 +181,7 @@ def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.
         z = np.nan_to_num(c)
         g.append(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
         g.append(cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
-    return CodeView(u, v, valid, bucket_centroids_px(col, row, valid, proj_size), np.stack(g, -1), fp, scale)
+    return CodeView(u, v, valid, cen, np.stack(g, -1), fp, scale)
 
 
 def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig(),
