@@ -128,8 +128,14 @@ class EpsonProjector:
         return self.query("ERR")
 
     def power_on(self) -> None:
-        """Power on and wait through the warm-up until ``PWR?`` reads 01."""
+        """Power on (after any cool-down) and wait through the warm-up until ``PWR?`` reads 01."""
         state = self.power_state()
+        deadline = time.monotonic() + self.timing.power_off_s
+        while state == "03":  # PWR ON is refused until the cool-down has finished
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(f"still cooling down after {self.timing.power_off_s:g} s", where=self.name)
+            time.sleep(self.timing.poll_s)
+            state = self.power_state()
         if state == "05":
             raise DeviceError(f"abnormal standby (error {self._safe_error()}); check lamp and temperature", where=self.name)
         if state != "01":
@@ -149,8 +155,14 @@ class EpsonProjector:
         except DeviceError:
             return "unknown"
 
-    def power_off(self) -> None:
+    def power_off(self, wait: bool = True) -> None:
+        """Power off; with ``wait``, poll ``PWR?`` through the cool-down (03) until standby (00/04)."""
         self.command("PWR OFF")
+        deadline = time.monotonic() + self.timing.power_off_s
+        while wait and (state := self.power_state()) not in ("00", "04"):
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(f"still {POWER_STATES.get(state, state)} {self.timing.power_off_s:g} s after PWR OFF", where=self.name)
+            time.sleep(self.timing.poll_s)
 
     def set_source(self, code: str = SOURCE_HDMI1) -> None:
         self.command(f"SOURCE {code}")

@@ -89,3 +89,15 @@ def test_lit_image_follows_power_source_and_mute(sim: SimulatedEBU42) -> None:
     assert sim.lit_image() is frame
     proj.command("SOURCE 52")
     assert sim.lit_image() is None  # not on HDMI
+
+
+def test_power_off_waits_through_cool_down(sim: SimulatedEBU42) -> None:
+    proj = _driver(sim.serve_pty())
+    proj.prepare()
+    proj.power_off(wait=False)
+    assert proj.power_state() == "03"
+    with pytest.raises(ProjectorError):
+        proj.command("PWR ON")  # not accepted during cool-down
+    proj.power_on()
+    proj.power_off()
+    assert sim.power() == "04" and proj.power_state() == "04"
