@@ -6,13 +6,13 @@ Named presets (``make_scene(name, rig)``):
 * ``"wall"``: a flat, nearly fronto-parallel textured wall at 2.2 m (the paper's depth-validation setup;
   place ``calib.board.WALL_BOARD`` on it with :func:`wall_board_pose`);
 * ``"boxes"``: several textured boxes from 0.5 m to 4 m in front of a far wall;
-* ``"near"``: close-up objects from 0.26 m to 1 m before a wall at 2.5 m;
+* ``"near"``: close-up spheres from 0.26 m to 0.85 m in front of cam0, before a wall at 2.5 m;
 * ``"plane"``: one fronto-parallel textured plane at 2.0 m (for optics tests).
 
-Any ``int`` gives a random scene of that seed: a back wall 3.5..10 m away, slanted up to 30 deg, a floor,
+Any ``int`` gives a random scene of that seed: a back wall 2.5..9 m away, slanted up to 30 deg, a floor,
 sometimes a side wall, and 2..6 objects (boxes, spheres, cylinders) between 0.26 m and 4 m, textured with
 noise, stripes, fine checkers and dark low-albedo blotches. Depth statistics over random scenes follow
-the paper's (0.26 m .. 10 m, median near 2.7 m); ``tests/studio/test_scenes.py`` checks it.
+the paper's (0.26 m .. 10 m, median near 2.7 m); ``tests/studio/test_rig_scenes.py`` checks it.
 """
 
 from __future__ import annotations
@@ -99,9 +99,17 @@ def _yaw(deg: float) -> NDArray[np.float64]:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
+RIG_HALF_BASELINE_M = 0.15
+"""Half the default rig baseline; the bodies converge at 3 m (rig.py)."""
+
+
 def _in_view(rng: np.random.Generator, z: float, margin: float = 0.7) -> tuple[float, float]:
-    """A random (x, y) inside the cameras' common view at depth z (half FOV ~11.6 x 7.8 deg)."""
-    return float(rng.uniform(-0.2, 0.2) * z * margin), float(rng.uniform(-0.13, 0.13) * z * margin)
+    """A random (x, y) in view at depth z (half FOV ~11.6 x 7.8 deg). Closer than 0.8 m the two bodies'
+    views no longer overlap, so near objects sit in front of one body (picked at random)."""
+    x0 = 0.0
+    if z < 0.8:
+        x0 = float(rng.choice([-1.0, 1.0])) * RIG_HALF_BASELINE_M * (1.0 - z / 3.0)
+    return x0 + float(rng.uniform(-0.2, 0.2) * z * margin), float(rng.uniform(-0.13, 0.13) * z * margin)
 
 
 def _random_scene(seed: int) -> Scene:
@@ -168,11 +176,15 @@ def _preset(name: str) -> Scene:
         return Scene("boxes", tuple(prims), np.array([prims[4].center[0], prims[4].center[1], 1.9]))
     if name == "near":
         prims = [_wall(2.5, 5.0, random_texture(rng, 0.3), name="back_wall")]
-        for k, z in enumerate((0.26, 0.4, 0.6, 0.85)):
-            x, y = _in_view(rng, z, 0.5)
-            r = 0.012 + 0.02 * z
+        # close-ups spread across the view: the nearest at 0.26 m (the paper's minimum depth)
+        spots = ((0.26, -0.35, 0.2), (0.4, 0.3, -0.3), (0.6, -0.1, 0.45), (0.85, 0.25, 0.1))
+        for k, (z, fx, fy) in enumerate(spots):
+            r = 0.006 + 0.03 * z
+            # in front of cam0 (the bodies' views do not overlap this close)
+            x, y = -RIG_HALF_BASELINE_M * (1 - z / 3.0) + fx * 0.2 * z, fy * 0.13 * z
             prims.append(Sphere(np.array([x, y, z + r]), r, random_texture(rng, 0.2), f"sphere{k}"))
-        return Scene("near", tuple(prims), np.array([prims[3].center[0], prims[3].center[1], 0.85]))
+        s3 = prims[3]
+        return Scene("near", tuple(prims), np.asarray(s3.center) - np.array([0.0, 0.0, s3.radius_m]))
     raise BadInputError(f"unknown scene preset {name!r} (presets: {', '.join(PRESETS)}; or an integer seed)")
 
 
