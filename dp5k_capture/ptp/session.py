@@ -196,9 +196,10 @@ class PTPSession:
             self.op_log.append(op)
             try:
                 res = self._once(op, tuple(params), data_out, data_in, tid, timeout_ms)
-            except StallError:
+            except StallError as exc:
                 stalls += 1
                 if stalls > self.config.stall_retries:
+                    exc.message = f"{step}: {exc.message}"
                     raise
                 self.recover(step)
                 continue

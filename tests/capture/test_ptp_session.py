@@ -5,7 +5,14 @@ from __future__ import annotations
 import pytest
 
 from dp5k_capture.ptp.codes import Op, Resp
-from dp5k_capture.ptp.errors import DeviceBusyError, DisconnectedError, ProtocolError, PTPTimeoutError, ResponseError
+from dp5k_capture.ptp.errors import (
+    DeviceBusyError,
+    DisconnectedError,
+    ProtocolError,
+    PTPTimeoutError,
+    ResponseError,
+    StallError,
+)
 from dp5k_capture.ptp.session import PTPSession
 from dp5k_capture.ptp.transport import UsbTransport
 
@@ -72,9 +79,9 @@ def test_stalled_pipe_is_recovered_and_the_transaction_retried(body: Body) -> No
     assert s.get_storage_ids() == [0x00010001]
     assert not body.usb.halted
     body.usb.faults.stall_in = 5  # keeps stalling: stops after the bound with a named error
-    with pytest.raises(Exception) as err:
+    with pytest.raises(StallError) as err:
         s.get_storage_ids()
-    assert "body SIM0001" in str(err.value)
+    assert str(err.value).startswith("body SIM0001: GET_STORAGE_IDS: bulk IN: endpoint stalled")
 
 
 def test_disconnect_in_the_middle_of_a_transfer(body: Body) -> None:
