@@ -87,8 +87,10 @@ found = find_bodies()
 s = PTPSession(UsbTransport(found[0].device, "sx200"))
 s.open_session(1)
 info = s.get_device_info()
+handles = s.get_object_handles(0xFFFFFFFF, 0, 0xFFFFFFFF)  # the same URBs gphoto2 sent when recorded
 print(json.dumps({"vid": found[0].vid, "pid": found[0].pid, "manufacturer": info.manufacturer, "model": info.model,
-                  "vendor": info.vendor_extension_id, "ops": info.operations, "version": info.standard_version}))
+                  "vendor": info.vendor_extension_id, "ops": info.operations, "version": info.standard_version,
+                  "handles": handles}))
 """
 
 
@@ -105,6 +107,7 @@ def test_pyusb_client_reads_a_recorded_real_canon_camera() -> None:
     assert info["manufacturer"] == "Canon Inc." and info["model"] == "Canon PowerShot SX200 IS"
     assert info["vendor"] == 6 and info["version"] == 100  # vendor id 6, like the 5D Mark IV: Canon known by VID
     assert len(info["ops"]) == 52 and 0x1001 in info["ops"] and 0x9001 in info["ops"]
+    assert info["handles"] == [0x00080000]  # the card's root folder, from the camera's own bytes
 
 
 def test_epson_projector_client_drives_the_simulated_eb_u42() -> None:
