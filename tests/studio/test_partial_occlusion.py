@@ -82,3 +82,27 @@ def test_layered_views_match_aperture_sampling(setup, focus_m: float, mean_tol: 
         if focus_m == 4.0:  # blurred foreground: the hidden background is what makes the edge right
             assert err.max() < 0.06
             assert np.abs(view_plain - ref[side])[inner].max() > 2.5 * err.max()
+
+
+def test_a_slanted_surface_shows_no_seams_between_its_depth_bins() -> None:
+    """A uniform slanted plane before a dark wall spans many CoC bins; away from its silhouette each view
+    must stay exactly uniform (no darker seams where the wall behind could leak between bins)."""
+    a, b = np.array([-0.6, -2.0, 0.9]), np.array([-0.05, -2.0, 2.4])  # recedes to the right
+    u = (b - a) / np.linalg.norm(b - a)
+    slab = Quad(a, u, np.array([0.0, 1.0, 0.0]), (float(np.linalg.norm(b - a)), 4.0),
+                TextureSpec("flat", color_a=(0.6, 0.6, 0.6)), "slab")
+    wall = Quad(np.array([-20.0, -20.0, 6.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), (40.0, 40.0),
+                TextureSpec("flat", color_a=(0.03, 0.03, 0.03)), "wall")
+    from dp5k_capture.sim.studio import Studio
+
+    st = Studio(Scene("slab", (wall, slab), np.array([0.0, 0.0, 3.0])), make_rig(20), supersample=1)
+    rad = st.radiance(0)[:, :, 1]
+    on = st.geometry(0).prim == 1
+    dp = st.render_views(0, 1.8, 3.0)
+    c = float(np.abs(dp.coc_px[on][:, 1]).max())
+    import cv2
+
+    inner = cv2.erode(on.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(c / 2) + 3).astype(bool)
+    assert inner.sum() > 500 and np.ptp(dp.coc_px[inner][:, 1]) > 5  # many bins inside
+    for view in (dp.left, dp.right):
+        assert np.abs(2 * view[:, :, 1] - rad)[inner].max() < 0.005 * rad[inner].mean()
