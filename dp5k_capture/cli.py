@@ -29,7 +29,7 @@ def _sim_scene(scene: str) -> str | int:
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
-@click.option("--sim-scale", default="60", show_default=True, help="Studio scale for --sim (sensor downscale factor or small/medium/paper).")
+@click.option("--sim-scale", default="small", show_default=True, help="Studio scale for --sim: small (336x224 raw, the smallest that processing calibrates reliably), medium, paper, or a sensor downscale factor.")
 @click.option("--seed", default=0, show_default=True, help="Studio seed for --sim.")
 @click.option("--dry-run", is_flag=True, help="Print the plan (and what a resume would skip); touch nothing.")
 def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, dry_run: bool) -> None:

@@ -199,7 +199,8 @@ def _storage_error(exc: OSError, path: Path) -> DP5KError:
 def _rig_json(rig: RigConfig) -> dict[str, Any]:
     return {
         "bodies": [{"id": b.id, "model": b.model, "serial": b.serial, "lens": b.lens,
-                    "sensor_size_mm": list(b.sensor_size_mm), "raw_size_px": list(b.raw_size_px)} for b in rig.bodies],
+                    "sensor_size_mm": list(b.sensor_size_mm), "raw_size_px": list(b.raw_size_px),
+                    **({"K": [list(r) for r in b.K], "dist": list(b.dist)} if b.K else {})} for b in rig.bodies],
         "projector": {"model": rig.projector.model, "resolution": [rig.projector.width, rig.projector.height],
                       "port": rig.projector.port, "source": rig.projector.source},
         "aux_view": rig.aux_view,

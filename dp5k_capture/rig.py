@@ -26,6 +26,8 @@ Example (all keys optional except the bodies' serials on a real rig)::
 
 from __future__ import annotations
 
+import numpy as np
+
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
@@ -39,7 +41,13 @@ from .ptp.codes import av_code, tv_code, tv_seconds
 
 @dataclass(frozen=True)
 class BodyConfig:
-    """One camera body. ``focus_point_px`` is in raw-image pixels (x, y)."""
+    """One camera body. ``focus_point_px`` is in raw-image pixels (x, y).
+
+    ``K`` (3x3, raw px) and ``dist`` (OpenCV k1, k2, p1, p2, k3) are the body's intrinsics prior for its
+    focus setting (from a one-time many-view calibration, e.g. ``calib/`` on 20+ ChArUco views); they are
+    copied into the manifest, and processing holds them fixed while the scene's 3 ChArUco pairs
+    re-estimate the stereo R, T. Empty = unknown (processing then estimates them from the 3 views).
+    """
 
     id: str
     serial: str = ""
@@ -48,6 +56,8 @@ class BodyConfig:
     sensor_size_mm: tuple[float, float] = (36.0, 24.0)
     raw_size_px: tuple[int, int] = (6720, 4480)
     focus_point_px: tuple[int, int] = (3360, 2240)
+    K: tuple[tuple[float, float, float], ...] = ()
+    dist: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -77,8 +87,8 @@ class ExposureConfig:
     sharp_shutter_s: float = 1 / 4
     sl_f_number: float = 22.0
     sl_shutter_s: float = 1 / 4
-    charuco_f_number: float = 8.0
-    charuco_shutter_s: float = 1 / 30
+    charuco_f_number: float = 22.0
+    charuco_shutter_s: float = 1 / 4
     charuco_views: int = 3
 
     def dp_shutter_s(self, f_number: float) -> float:
@@ -153,6 +163,11 @@ def validate_rig(rig: RigConfig, where: str = "rig") -> None:
             tv_code(e.dp_shutter_s(f))
     except ValueError as exc:
         raise BadInputError(str(exc), where=where) from None
+    for b in rig.bodies:
+        if b.K and (np.shape(b.K) != (3, 3) or not np.isfinite(np.asarray(b.K, float)).all()):
+            raise BadInputError(f"body {b.id}: K must be a finite 3x3 matrix in raw px", where=where)
+        if b.dist and (len(b.dist) not in (4, 5, 8) or not np.isfinite(np.asarray(b.dist, float)).all()):
+            raise BadInputError(f"body {b.id}: dist must hold 4, 5 or 8 finite OpenCV coefficients", where=where)
     if rig.aux_view not in ("left", "right"):
         raise BadInputError(f"aux_view must be left or right, got {rig.aux_view!r}", where=where)
     if not (math.isfinite(e.iso) and e.iso > 0):

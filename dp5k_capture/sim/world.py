@@ -117,7 +117,9 @@ class StudioOptics:
     Each exposure shows the projector's current output (``projector.lit_image()``: the pattern window's
     framebuffer while the projector is on, unmuted and on HDMI) in the studio and renders camera ``i``
     (the body whose serial is the studio camera's serial) at the body's aperture, shutter, ISO and focus.
-    The ChArUco board is placed by :meth:`place` (3 poses facing the rig near the focus target).
+    The ChArUco views are the recalibration shots an operator takes at the scene's focus setting: the board
+    is held 2.0-2.3 m from the rig in 3 tilted poses in front of a plain far wall (a separate calibration
+    studio with the same rig and focus), because in a furnished scene nearer objects would hide it.
 
     Args:
         scene: studio scene name or seed.
@@ -130,13 +132,21 @@ class StudioOptics:
                  effects: Any = None) -> None:
         from .studio import Studio, make_rig, make_scene
 
+        from .studio import plane_scene
+
         self.srig = make_rig(scale, seed=seed)
-        self.studio = Studio(make_scene(scene, self.srig), self.srig, effects, seed=seed)
+        self.scene_studio = Studio(make_scene(scene, self.srig), self.srig, effects, seed=seed)
+        self.calib_studio = Studio(plane_scene(8.0), self.srig, effects, seed=seed + 1)
+        self.studio = self.scene_studio  # the scene: focus, ground truth, DP and structured-light shots
+        self._active = self.scene_studio
         self.projector = projector
         self.seed = seed
         cams = self.srig.cameras
         self.serials = [c.serial for c in cams]
         self.raw_sizes_px = [(c.width, c.height) for c in cams]
+        # the simulated bodies' factory intrinsics prior (what a one-time many-view calibration would give)
+        self.intrinsics = [(tuple(tuple(float(v) for v in row) for row in np.asarray(c.K)), tuple(float(v) for v in np.ravel(c.dist)))
+                           for c in cams]
         self.focus_points_px = [self._focus_point_px(i) for i in range(2)]
         self._shown: bytes | None = b"unset"
         self.board_poses: dict[int, tuple[list[list[float]], list[float]]] = {}
@@ -169,51 +179,48 @@ class StudioOptics:
     def board_pose(self, view: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Board -> world pose of ChArUco view ``view`` (metres), as an operator would hold it.
 
-        The board faces the rig on its centre line, tilted differently per view (yaw / pitch), at the focus
-        target's depth but no nearer than 2.6 m + a per-view offset: at 85 mm on 36 x 24 mm the view is
-        0.42 z wide and 0.28 z high, so the 0.72 x 0.54 m board fits both toed-in cameras with a margin
-        from about 2.5 m on; it stays 0.1 m in front of whatever the rig sees behind it.
+        The board centre is held 2.0-2.3 m in front of the rig, tilted differently per view (yaw, pitch,
+        roll of 5-20 degrees: varied poses constrain R, T). At 85 mm on a 36 x 24 mm sensor the view is
+        0.42 z wide and 0.28 z high, so the 0.72 x 0.54 m board fills most of both toed-in views, with its
+        ~60 mm squares several pixels wide even at the small studio scale.
         """
         from calib.board import DEFAULT_BOARD
 
-        yaw_deg, pitch_deg, dz_m = [(0.0, 0.0, 0.0), (15.0, 6.0, 0.25), (-12.0, -8.0, -0.1)][view % 3]
-        yaw, pitch = np.deg2rad(yaw_deg), np.deg2rad(pitch_deg)
-        cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
-        R = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) @ np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
-        target_z = float(np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)[2])
-        z = min(max(target_z, 2.6) + dz_m, self._depth_behind_board_m() - 0.1)
+        (cx, cy_, cz), yaw_deg, pitch_deg, roll_deg = [((0.0, 0.0, 2.1), 18.0, 8.0, 3.0),
+                                                      ((0.03, 0.02, 2.3), -20.0, -10.0, -4.0),
+                                                      ((-0.03, -0.02, 2.0), 5.0, 15.0, 8.0)][view % 3]
+        R = (cv2.Rodrigues(np.radians([0.0, yaw_deg, 0.0]))[0] @ cv2.Rodrigues(np.radians([pitch_deg, 0.0, 0.0]))[0]
+             @ cv2.Rodrigues(np.radians([0.0, 0.0, roll_deg]))[0])
         w, h = DEFAULT_BOARD.size_m
-        t = np.array([0.0, 0.0, z]) - R @ np.array([w / 2, h / 2, 0.0])
+        t = np.array([cx, cy_, cz]) - R @ np.array([w / 2, h / 2, 0.0])
         return R, t
 
-    def _depth_behind_board_m(self) -> float:
-        """Typical scene depth (m, median) in the central third of cam0's view, board removed: the background
-        the board must stay in front of (nearer objects may occlude part of it, as on the real rig)."""
-        self.studio.set_board_pose(None)
-        depth = np.asarray(self.studio.ground_truth(0)["depth_m"], dtype=np.float64)
-        H, W = depth.shape
-        centre = depth[H // 3 : 2 * H // 3, W // 3 : 2 * W // 3]
-        centre = centre[np.isfinite(centre)]
-        return float(np.median(centre)) if centre.size else 10.0
-
     def place(self, view: int) -> None:
+        """Hold the board in pose ``view``: the following exposures are the calibration shots."""
         R, t = self.board_pose(view)
         self.board_poses[view] = (R.tolist(), t.tolist())
-        self.studio.set_board_pose((R, t))
+        self.calib_studio.set_board_pose((R, t))
+        self._active = self.calib_studio
+        self._shown = b"unset"
 
     def clear(self) -> None:
-        self.studio.set_board_pose(None)
+        """Board away: the following exposures show the scene again."""
+        self.calib_studio.set_board_pose(None)
+        self._active = self.scene_studio
+        self._shown = b"unset"
 
     def expose(self, s: ExposureSettings) -> bytes:
         i = self._index(s.serial)
+        studio = self._active
         lit = self.projector.lit_image()
         key = None if lit is None else hashlib.sha1(np.ascontiguousarray(lit).tobytes()).digest()
         if key != self._shown:
-            self.studio.set_projector_image(lit)
+            studio.set_projector_image(lit)
             self._shown = key
+        # the body keeps the scene's focus setting for every shot, the calibration views included
         focus = s.focus_distance_m if s.focus_distance_m is not None else self.studio.focus_distance_m(i, self.focus_points_px[i])
         rng = np.random.default_rng([self.seed, i, s.sequence])
-        raw = self.studio.expose(i, s.f_number, focus, s.shutter_s, s.iso, rng)
+        raw = studio.expose(i, s.f_number, focus, s.shutter_s, s.iso, rng)
         meta = {**raw.metadata, "sequence": s.sequence}
         return dng_bytes(raw.main, raw.aux if s.dual_pixel_raw else None, raw.black_level, raw.white_level, raw.wb_gains, meta)
 
@@ -306,8 +313,10 @@ def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[Sim
         sizes = list(getattr(optics, "raw_sizes_px", [raw_size_px, raw_size_px]))
     serials = list(getattr(optics, "serials", SIM_SERIALS))
     points = list(getattr(optics, "focus_points_px", [(w // 2, h // 2) for (w, h) in sizes]))
+    intrinsics = list(getattr(optics, "intrinsics", [(b.K, b.dist) for b in base.bodies]))
     bodies_cfg = tuple(
-        replace(b, serial=serials[i], raw_size_px=tuple(sizes[i]), focus_point_px=tuple(points[i]))
+        replace(b, serial=serials[i], raw_size_px=tuple(sizes[i]), focus_point_px=tuple(points[i]),
+                K=intrinsics[i][0], dist=intrinsics[i][1])
         for i, b in enumerate(base.bodies)
     )
     rig = replace(base, bodies=bodies_cfg, projector=replace(p, port=port))

@@ -170,6 +170,16 @@ def test_dp5k_capture_sim_demo01_end_to_end(tmp_path: Path) -> None:
     assert (gt / "cam0_depth_mm.png").is_file() and (gt / "cam1_proj_xy.npy").is_file()
     m = json.loads((out / "demo01/manifest.json").read_text())
     assert m["focus_point_px"]["cam0"] == cam0["focus_point_px"]
+    # the manifest carries each body's intrinsics prior, which processing holds fixed while re-estimating R, T
+    assert all(np.shape(b["K"]) == (3, 3) and len(b["dist"]) == 5 for b in m["rig"]["bodies"])
+    # the recalibration views are usable: the board is found in all 3 views of both bodies
+    from calib.detect import detect_charuco
+    from dp5k_process.pipeline import raw_gray
+
+    for cam in ("cam0", "cam1"):
+        for k in range(3):
+            det = detect_charuco(raw_gray(read_dual_pixel(out / f"demo01/{cam}/charuco_{k}.dng")))
+            assert det is not None and len(det.ids) >= 30, (cam, k, None if det is None else len(det.ids))
     f = read_dual_pixel(out / "demo01/cam0/dp_f1.8.dng")
     assert f.metadata["f_number"] == 1.8 and f.metadata["focus_distance_m"] == pytest.approx(cam0["focus_distance_recorded_m"])
     # never overwritten: a second capture of the complete scene is refused with exit code 3
