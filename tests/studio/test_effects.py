@@ -223,3 +223,25 @@ def test_misregistration_in_the_raw_route_moves_only_dp_captures() -> None:
     H, W = dp_a.left.shape[:2]
     dx, dy = effect_parameters("misregistration", 2.0, (W, H))["shift_px"]
     assert np.allclose(dp_b.left, fourier_shift(dp_a.left, dx, dy), atol=1e-5)
+
+
+@pytest.mark.parametrize("name", EFFECT_NAMES)
+def test_every_effect_acts_in_both_routes_and_is_recorded(name: str) -> None:
+    from dp5k_capture.sim.studio import Studio, make_rig, make_scene
+
+    rig = make_rig(60)
+    eff = EffectSet.of(**{name: 1.5})
+    shots = []
+    for e in (None, eff):
+        st = Studio(make_scene("boxes", rig), rig, e, supersample=1)
+        F = st.focus_distance_m(0, st.focus_point_px(0))
+        shots.append(st.expose(0, 2.8, F, 1 / 100, 400, rng=np.random.default_rng(7)))
+    assert not (np.array_equal(shots[0].main, shots[1].main) and np.array_equal(shots[0].aux, shots[1].aux))
+    assert name in shots[1].metadata["effects"] and not shots[0].metadata["effects"]
+    img = textured(48, 64, 9)
+    depth = np.tile(np.linspace(900.0, 4000.0, 64), (48, 1))
+    kw = dict(f_number=2.8, focus_distance_mm=1500.0, pixel_pitch_mm=36.0 / 640, rng=None)
+    a = pair_from_rgbd(img, depth, **{**kw, "rng": np.random.default_rng(1)})
+    b = pair_from_rgbd(img, depth, effects=eff, **{**kw, "rng": np.random.default_rng(1)})
+    assert not np.array_equal(a.left, b.left) or not np.array_equal(a.right, b.right)
+    assert name in b.extra["effects"]
