@@ -212,6 +212,22 @@ def focus_window_for(cfg: ProcessConfig, out_w: int) -> tuple[int, int]:
     return max(3, int(round(cfg.focus_window_px[0] * f))), max(3, int(round(cfg.focus_window_px[1] * f)))
 
 
+def thin_focal_length(lens_mm: float | None, pinhole_mm: float, focus_mm: float) -> tuple[float, str]:
+    """Thin-lens focal length for Eq. 6: the lens's own when known, else Eq. 7, ``1/f = 1/F + 1/f_pin``.
+
+    Args:
+        lens_mm: the lens focal length from the manifest (None if unknown).
+        pinhole_mm: calibrated pinhole focal length ``K[0,0] x pixel pitch`` in mm.
+        focus_mm: focus distance F in mm (Eq. 5).
+
+    Returns:
+        (focal length in mm, where it came from).
+    """
+    if lens_mm:
+        return float(lens_mm), "lens"
+    return thin_lens_focal_length_mm(pinhole_mm, focus_mm), "Eq. 7 from the calibrated pinhole focal length"
+
+
 def _exposure_ratio(dp_main: NDArray[np.float32], sharp_main: NDArray[np.float32]) -> float:
     """Ratio of mean signal DP / sharp over pixels unsaturated in both (blur preserves the mean)."""
     ok = (dp_main.max(-1) < 0.98) & (sharp_main.max(-1) < 0.98)
@@ -270,10 +286,7 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
         Kout = (st.cam0 if cam == "cam0" else st.cam1).scaled(sx, sy).K
         pitch_mm = cs.sensor_size_mm[0] / out_size[0]
         f_pin_mm = float(Kout[0, 0]) * pitch_mm
-        if cs.focal_length_mm:
-            f_thin, f_source = float(cs.focal_length_mm), "lens"
-        else:
-            f_thin, f_source = thin_lens_focal_length_mm(f_pin_mm, F_mm), "Eq. 7 from the calibrated pinhole focal length"
+        f_thin, f_source = thin_focal_length(cs.focal_length_mm, f_pin_mm, F_mm)
         sharp_fr = read_frames(session, cs.sharp)
         sharp_main, _, _ = dp_views(sharp_fr, session.aux_view)
         sharp_main = resize_image(sharp_main, out_size)

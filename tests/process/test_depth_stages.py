@@ -135,3 +135,11 @@ def test_focus_distance_window_and_errors():
     d[30:70, 100:140] = 0
     with pytest.raises(StageError, match="no valid depth"):
         focus_distance(d, (120, 50))
+
+
+def test_thin_focal_length_lens_or_eq7():
+    from dp5k_process.pipeline import thin_focal_length
+
+    assert thin_focal_length(85.0, 87.76, 2000.0) == (85.0, "lens")
+    f, src = thin_focal_length(None, 87.76, 2700.0)  # the studio's pinhole f is the image distance at 2.7 m
+    assert "Eq. 7" in src and f == pytest.approx(85.0, abs=0.01)
