@@ -188,7 +188,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
               "run `dp5k -v diagnose OUT/studio-hidden --model neural:OUT/neural_dp/best.pt`"),
         Stage("synthesize", "Synthesis of DP pairs from RGBD frames", synthesize,
               "run `dp5k -v synthesize OUT/rgbd-frames OUT/synthesized`"),
-        Stage("report", "Report", report, "rerun `dp5k -v demo OUT` (finished stages are reused)"),
+        Stage("report", "Report", report, "rerun `dp5k -v demo OUT` (finished stages are reused)", always=True),
     ]
 
 

@@ -29,12 +29,14 @@ class Stage:
         title: what the report calls it.
         run: ``run(ctx) -> dict`` doing the work; returns JSON-able results for the report.
         fix: the hint printed when the stage fails (what the user should do).
+        always: run even when an earlier run finished it (cheap stages whose output must reflect this run).
     """
 
     name: str
     title: str
     run: Callable[[dict[str, Any]], dict[str, Any]]
     fix: str
+    always: bool = False
 
 
 def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bool = False) -> dict[str, dict[str, Any]]:
@@ -52,7 +54,7 @@ def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bo
     state = out / ".stages"
     for i, stage in enumerate(stages, 1):
         path = state / f"{stage.name}.json"
-        if path.is_file() and not force:
+        if path.is_file() and not force and not stage.always:
             record = read_json(path)
             record["reused"] = True
             log.info("[%d/%d] %s: reused (finished in an earlier run)", i, len(stages), stage.title)
