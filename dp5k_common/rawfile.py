@@ -147,6 +147,30 @@ def _read_description(path: Path) -> dict[str, Any]:
         return {}
 
 
+def read_frame(path: str | os.PathLike[str], shot: int = 0) -> tuple[NDArray[np.uint16], int, int]:
+    """One raw frame only (``shot`` 0 = main, 1 = aux), for images where the DP split is not needed
+    (structured light, ChArUco): ``(mosaic uint16 (H, W), black_level, white_level)``.
+
+    Raises:
+        BadInputError: missing, unreadable or truncated file, or no such frame.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise BadInputError("raw file not found", where=path)
+    try:
+        raw = _open_frame(path, shot)
+    except rawpy.LibRawRequestForNonexistentImageError as exc:
+        raise BadInputError(f"raw file has no frame {shot}", where=path) from exc
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        raise BadInputError(f"unreadable or truncated raw file ({type(exc).__name__}: {exc})", where=path) from exc
+    with raw:
+        try:
+            img = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+        except (rawpy.LibRawError, ValueError) as exc:
+            raise BadInputError(f"unreadable raw data ({exc})", where=path) from exc
+        return img, int(np.round(np.mean(raw.black_level_per_channel))), int(raw.white_level)
+
+
 def read_dual_pixel(path: str | os.PathLike[str]) -> DualPixelFrames:
     """Read both frames of a Dual Pixel RAW file (DNG from the simulated body, CR2 from the 5D IV).
 

@@ -29,7 +29,7 @@ from calib.detect import detect_charuco
 from dp5k_common.dataset import PairParams
 from dp5k_common.errors import BadInputError, CalibrationError, StageError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
-from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel
+from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel, read_frame
 
 from .filters import FilterConfig, filter_depth, recursive_fill
 from .focus import FocusConfig, focus_distance
@@ -95,9 +95,16 @@ def read_frames(session: Session, path: Path) -> DualPixelFrames:
     return read_dual_pixel(path)
 
 
-def raw_gray(frames: DualPixelFrames) -> NDArray[np.float32]:
+def read_main(session: Session, path: Path) -> tuple[NDArray[np.uint16], int, int]:
+    """Frame 0 (main) of a raw file of the session, size checked: (mosaic, black, white)."""
+    check_size(session, path)
+    return read_frame(path, 0)
+
+
+def raw_gray(frames: DualPixelFrames | tuple[NDArray[np.uint16], int, int]) -> NDArray[np.float32]:
     """Full-resolution gray image of the main frame (Bayer -> gray), raw counts above black."""
-    m = np.clip(frames.main.astype(np.int32) - frames.black_level, 0, 65535).astype(np.uint16)
+    main, black = (frames.main, frames.black_level) if isinstance(frames, DualPixelFrames) else frames[:2]
+    m = np.clip(main.astype(np.int32) - black, 0, 65535).astype(np.uint16)
     return cv2.cvtColor(m, cv2.COLOR_BayerRG2GRAY).astype(np.float32)
 
 
@@ -117,8 +124,8 @@ def calibrate_session(session: Session, cfg: ProcessConfig, raw_size: tuple[int,
     c0, c1 = session.cameras["cam0"], session.cameras["cam1"]
     dets = []
     for p0, p1 in zip(c0.charuco, c1.charuco):
-        d0 = detect_charuco(raw_gray(read_frames(session, p0)), cfg.board)
-        d1 = detect_charuco(raw_gray(read_frames(session, p1)), cfg.board)
+        d0 = detect_charuco(raw_gray(read_main(session, p0)), cfg.board)
+        d1 = detect_charuco(raw_gray(read_main(session, p1)), cfg.board)
         dets.append((d0, d1))
     info: dict[str, Any] = {"charuco_corners": [[0 if a is None else len(a), 0 if b is None else len(b)] for a, b in dets]}
     if cfg.intrinsics:
@@ -150,18 +157,18 @@ def decode_camera(session: Session, cam: str, gcfg: GrayCodeConfig) -> tuple[Gra
     """
     files = session.cameras[cam].sl
     n = len(files) - 2
-    white = read_frames(session, files[n])
-    black = read_frames(session, files[n + 1])
-    shape = white.main.shape
-    full = white.white_level - white.black_level
+    white, black_level, white_level = read_main(session, files[n])
+    black = read_main(session, files[n + 1])[0]
+    shape = white.shape
+    full = white_level - black_level
 
     def load(i: int) -> NDArray[np.float32]:
-        fr = read_frames(session, files[i])
-        if fr.main.shape != shape:
-            raise BadInputError(f"raw size {fr.main.shape} differs from the session's {shape}", where=files[i])
-        return fr.main.astype(np.float32)
+        main = read_main(session, files[i])[0]
+        if main.shape != shape:
+            raise BadInputError(f"raw size {main.shape} differs from the session's {shape}", where=files[i])
+        return main.astype(np.float32)
 
-    dec = decode_graycode(load, white.main.astype(np.float32), black.main.astype(np.float32), float(full), gcfg)
+    dec = decode_graycode(load, white.astype(np.float32), black.astype(np.float32), float(full), gcfg)
     return dec, (shape[1], shape[0]), full
 
 
@@ -243,8 +250,8 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
     """Process one checked session into pairs (nothing is written here)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    probe = read_frames(session, session.cameras["cam0"].sl[-1])
-    raw_size = (probe.main.shape[1], probe.main.shape[0])
+    probe = read_main(session, session.cameras["cam0"].sl[-1])[0]
+    raw_size = (probe.shape[1], probe.shape[0])
     out_size = cfg.out_size or (raw_size[0] // 2, raw_size[1] // 2)
     st, cal_info = calibrate_session(session, cfg, raw_size)
     timings["calibrate_s"] = time.perf_counter() - t0

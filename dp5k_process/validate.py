@@ -24,7 +24,7 @@ from dp5k_common.io import write_bytes_atomic, write_json_atomic
 
 from .filters import backproject
 from .graycode import GrayCodeConfig
-from .pipeline import ProcessConfig, calibrate_session, decode_camera, depth_for_camera, raw_gray, read_frames
+from .pipeline import ProcessConfig, calibrate_session, decode_camera, depth_for_camera, raw_gray, read_main
 from .session import load_session
 from .triangulate import normalised_rays
 
@@ -84,14 +84,14 @@ def validate_depth(capture: str | os.PathLike[str], out: str | os.PathLike[str],
     """
     session = load_session(capture)
     cs = session.cameras[camera]
-    probe = read_frames(session, cs.sl[-1])
-    raw_size = (probe.main.shape[1], probe.main.shape[0])
+    probe = read_main(session, cs.sl[-1])[0]
+    raw_size = (probe.shape[1], probe.shape[0])
     st, cal_info = calibrate_session(session, cfg, raw_size)
     gcfg = cfg.gray or GrayCodeConfig.for_linear_raw(*session.projector_size)
     decs = {c: decode_camera(session, c, gcfg)[0] for c in ("cam0", "cam1")}
     depth, dinfo = depth_for_camera(decs, camera, st, cfg)
     cal = st.cam0 if camera == "cam0" else st.cam1
-    sharp = raw_gray(read_frames(session, cs.sharp))
+    sharp = raw_gray(read_main(session, cs.sharp))
     det = detect_charuco(sharp, cfg.board)
     if det is None:
         raise CalibrationError("no ChArUco board found on the wall", where=cs.sharp)

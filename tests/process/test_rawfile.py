@@ -66,3 +66,18 @@ def test_not_dual_pixel_and_truncated(tmp_path):
         read_dual_pixel(junk)
     with pytest.raises(BadInputError, match="not found"):
         read_dual_pixel(tmp_path / "missing.dng")
+
+
+def test_read_single_frame(tmp_path):
+    from dp5k_common.rawfile import read_frame
+
+    rng = np.random.default_rng(3)
+    main, aux = _frames(rng)
+    p = tmp_path / "sl_00.dng"
+    write_dual_pixel_dng(p, main, aux, 512, 16383, (2.0, 1.0, 1.5))
+    m, black, white = read_frame(p, 0)
+    np.testing.assert_array_equal(m, main)
+    np.testing.assert_array_equal(read_frame(p, 1)[0], aux)
+    assert (black, white) == (512, 16383)
+    with pytest.raises(BadInputError, match="no frame 2"):
+        read_frame(p, 2)
