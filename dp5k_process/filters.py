@@ -77,25 +77,29 @@ def statistical_outliers(depth_m: NDArray[np.float32], rays: NDArray[np.float32]
     return out
 
 
-def valid_median(depth_m: NDArray[np.float32], ksize: int = 5) -> NDArray[np.float32]:
+def valid_median(depth_m: NDArray[np.float32], ksize: int = 5, rows_per_chunk: int = 256) -> NDArray[np.float32]:
     """Median over the valid pixels of each ``ksize`` x ``ksize`` window, at valid pixels only.
 
     ``cv2.medianBlur`` on float accepts only ksize 3 and 5 and cannot skip invalid pixels, so the window is
-    stacked (ksize^2 shifted views), sorted (NaN sorts last) and the median of the n valid entries taken.
+    stacked (ksize^2 shifted views), sorted (NaN sorts last) and the median of the n valid entries taken;
+    rows are processed in chunks so the stack stays small (25 x 256 rows x W floats).
     """
     if ksize <= 1:
         return depth_m
     r = ksize // 2
     H, W = depth_m.shape
-    pad = np.pad(depth_m, r, constant_values=np.nan)
-    stack = np.stack([pad[dy:dy + H, dx:dx + W] for dy in range(ksize) for dx in range(ksize)], 0)
-    stack.sort(axis=0)
-    n = np.isfinite(stack).sum(0)
-    lo = np.take_along_axis(stack, np.maximum((n - 1) // 2, 0)[None], 0)[0]
-    hi = np.take_along_axis(stack, np.maximum(n // 2, 0)[None], 0)[0]
-    out = 0.5 * (lo + hi)
+    pad = np.pad(depth_m.astype(np.float32), r, constant_values=np.nan)
+    out = np.full((H, W), np.nan, np.float32)
+    for y0 in range(0, H, rows_per_chunk):
+        h = min(rows_per_chunk, H - y0)
+        stack = np.stack([pad[y0 + dy:y0 + dy + h, dx:dx + W] for dy in range(ksize) for dx in range(ksize)], 0)
+        stack.sort(axis=0)
+        n = np.isfinite(stack).sum(0)
+        lo = np.take_along_axis(stack, np.maximum((n - 1) // 2, 0)[None], 0)[0]
+        hi = np.take_along_axis(stack, np.maximum(n // 2, 0)[None], 0)[0]
+        out[y0:y0 + h] = 0.5 * (lo + hi)
     out[~np.isfinite(depth_m)] = np.nan
-    return out.astype(np.float32)
+    return out
 
 
 def filter_depth(depth_m: NDArray[np.float32], rays: NDArray[np.float32], cfg: FilterConfig = FilterConfig()

@@ -143,3 +143,10 @@ def test_thin_focal_length_lens_or_eq7():
     assert thin_focal_length(85.0, 87.76, 2000.0) == (85.0, "lens")
     f, src = thin_focal_length(None, 87.76, 2700.0)  # the studio's pinhole f is the image distance at 2.7 m
     assert "Eq. 7" in src and f == pytest.approx(85.0, abs=0.01)
+
+
+def test_valid_median_chunks_equal_whole():
+    rng = np.random.default_rng(6)
+    d = rng.uniform(1, 2, (70, 33)).astype(np.float32)
+    d[rng.random((70, 33)) < 0.4] = np.nan
+    np.testing.assert_array_equal(valid_median(d, 5, rows_per_chunk=16), valid_median(d, 5, rows_per_chunk=1000))
