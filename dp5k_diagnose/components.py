@@ -112,7 +112,7 @@ class ChromaticDefocus(Component):
         self.params = {k: 0.0 for k in self.KEYS}
         self.fit_names = list(self.KEYS)
         self.bounds = {k: (-2.0, 2.0) for k in self.KEYS}
-        self.steps = {k: 0.01 for k in self.KEYS}
+        self.steps = {k: 0.05 for k in self.KEYS}
 
     @staticmethod
     def coc_shift_px(batch: DPBatch, focal_shift_mm: float) -> Tensor:
@@ -248,7 +248,7 @@ class FrontBackAsymmetry(Component):
 
 
 def shift_image(img: Tensor, dx_px: float, dy_px: float) -> Tensor:
-    """(B, C, H, W) image translated by (dx, dy) px (content moves +x right, +y down), bilinear, border clamp."""
+    """(B, C, H, W) image translated by (dx, dy) px (content moves +x right, +y down), bicubic, border clamp."""
     if dx_px == 0.0 and dy_px == 0.0:
         return img
     B, C, H, W = img.shape
@@ -256,7 +256,7 @@ def shift_image(img: Tensor, dx_px: float, dy_px: float) -> Tensor:
     xs = torch.arange(W, dtype=img.dtype, device=img.device) - dx_px
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     grid = torch.stack([gx / max(W - 1, 1) * 2 - 1, gy / max(H - 1, 1) * 2 - 1], dim=-1)[None].expand(B, H, W, 2)
-    return F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return F.grid_sample(img, grid, mode="bicubic", padding_mode="border", align_corners=True)
 
 
 class Misregistration(Component):

@@ -76,8 +76,8 @@ class DetectConfig:
     tile_px: int = 32
     alpha: float = 0.01
     min_effect: float = 0.15
-    lm_iters: int = 4
-    refine_top: int = 3
+    lm_iters: int = 3
+    refine_top: int = 2
     noise_min_effect: float = 0.25
     nominal_shot_var: float = 2.0e-5
     nominal_read_sigma: float = 1.0e-3

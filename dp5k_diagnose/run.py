@@ -38,8 +38,8 @@ class DiagnoseConfig:
         effects: the effects to test (default: the whole vocabulary).
     """
 
-    fit_pairs: int = 6
-    crop_px: int = 128
+    fit_pairs: int = 4
+    crop_px: int = 96
     crops_per_pair: int = 2
     det_pairs: int = 8
     n_boot: int = 2000
@@ -99,7 +99,7 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     splits = choose_splits(reader, cfg)
     rng = np.random.default_rng(cfg.seed)
     fit = crop_samples(load_pairs(reader, splits["fit"]), cfg.crop_px, cfg.crops_per_pair, rng)
-    det = crop_samples(load_pairs(reader, splits["detect"]), cfg.crop_px, cfg.crops_per_pair, rng)
+    det = crop_samples(load_pairs(reader, splits["detect"]), cfg.crop_px, 1, rng)
     t_load = time.perf_counter()
     base = fit_base(fit, cfg.detect.lm_iters)
     log.info("base model fitted: %s", base.params)

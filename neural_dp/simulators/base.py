@@ -28,6 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 import torch
+from scipy.fft import next_fast_len
 import torch.nn.functional as F
 from torch import Tensor
 
@@ -71,7 +72,7 @@ class RenderConfig:
     """
 
     node_step_px: float = 1.0
-    max_nodes: int = 32
+    max_nodes: int = 24
     supersample: int = 4
     chunk: int = 4
 
@@ -227,9 +228,7 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     kl = kernel_fn(nodes)  # (K, Ck, n, n)
     Ck, n = kl.shape[1], kl.shape[-1]
     pad = n // 2 + 1
-    Hp, Wp = H + 2 * pad, W + 2 * pad
-    Hp += Hp % 2
-    Wp += Wp % 2
+    Hp, Wp = next_fast_len(H + 2 * pad, real=True), next_fast_len(W + 2 * pad, real=True)
     fl = _embed_kernel_fft(kl, Hp, Wp)  # (K, Ck, Hp, Wf)
     fr = _embed_kernel_fft(kl.flip(-1), Hp, Wp)
     per_channel = Ck == 3 or coc.shape[1] == 3
