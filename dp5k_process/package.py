@@ -20,7 +20,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from dp5k_common.dataset import split_scenes, write_index, write_pair
 from dp5k_common.errors import BadInputError, DP5KError, PartialFailureError

@@ -27,7 +27,7 @@ from calib.calibrate import (CalibConfig, CameraCalibration, StereoCalibration, 
                              stereo_calibrate)
 from calib.detect import detect_charuco
 from dp5k_common.dataset import PairParams
-from dp5k_common.errors import BadInputError, CalibrationError, StageError
+from dp5k_common.errors import BadInputError, StageError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel, read_frame
 
@@ -253,6 +253,11 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
     probe = read_main(session, session.cameras["cam0"].sl[-1])[0]
     raw_size = (probe.shape[1], probe.shape[0])
     out_size = cfg.out_size or (raw_size[0] // 2, raw_size[1] // 2)
+    for cam, cs in session.cameras.items():  # a bad focus point fails the scene before any heavy work
+        fx, fy = cs.focus_point_raw_px
+        if not (0 <= fx < raw_size[0] and 0 <= fy < raw_size[1]):
+            raise BadInputError(f"{cam} focus point ({fx:.0f}, {fy:.0f}) lies outside the {raw_size[0]}x{raw_size[1]} "
+                                "raw image", where=session.root / "manifest.json")
     st, cal_info = calibrate_session(session, cfg, raw_size)
     timings["calibrate_s"] = time.perf_counter() - t0
 
@@ -282,9 +287,6 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
         sx, sy = out_size[0] / raw_size[0], out_size[1] / raw_size[1]
         fx, fy = cs.focus_point_raw_px
         fp_out = ((fx + 0.5) * sx - 0.5, (fy + 0.5) * sy - 0.5)
-        if not (0 <= fx < raw_size[0] and 0 <= fy < raw_size[1]):
-            raise BadInputError(f"{cam} focus point ({fx:.0f}, {fy:.0f}) lies outside the {raw_size[0]}x{raw_size[1]} raw image",
-                                where=session.root / "manifest.json")
         window = focus_window_for(cfg, out_size[0])
         try:
             F_mm = focus_distance(depth_m * 1000.0, fp_out, FocusConfig(window_px=window))
