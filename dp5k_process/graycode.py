@@ -73,10 +73,10 @@ class GrayCodeConfig:
         projector that adds a few hundred counts over the ambient light is normal (the f/22 structured-light
         frames), so the thresholds are set from the sensor noise instead: shadow 0.8 % (127 counts, about
         12 sigma of a white-black difference at that level), bit 0.25 % (40 counts, about 4 sigma) and at least
-        10 % of the pixel's own white-black contrast; plus the 3 x 3 neighbourhood test (``denoise_px``).
+        10 % of the pixel's own white-black contrast; plus the 5 x 5 neighbourhood test (``denoise_px``).
         """
         return cls(proj_width, proj_height, white_thr=0.0025, black_thr=0.008, rel_thr=0.10, max_weak_bits=max_weak_bits,
-                   denoise_px=3)
+                   denoise_px=5)
 
 
 @dataclass

@@ -110,7 +110,7 @@ def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 
             body.update(K=cm.K.tolist(), dist=cm.dist.tolist())
         cams.append(body)
     manifest = dict(format="dp5k-raw-session", version=1, scene=scene_name,
-                    rig=dict(cameras=cams, projector=dict(model="EPSON EB-U42", resolution=[Wp, Hp]), aux_view="left"),
+                    rig=dict(bodies=cams, projector=dict(model="EPSON EB-U42", resolution=[Wp, Hp]), aux_view="left"),
                     focus_point_px={f"cam{c}": list(focus_px[c]) for c in (0, 1)},
                     focus_distance_true_m=focus_m, files=files, complete=True)
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
