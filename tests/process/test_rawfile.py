@@ -81,3 +81,17 @@ def test_read_single_frame(tmp_path):
     assert (black, white) == (512, 16383)
     with pytest.raises(BadInputError, match="no frame 2"):
         read_frame(p, 2)
+
+
+def test_single_frame_raw_is_not_dual_pixel(tmp_path):
+    import tifffile
+
+    rng = np.random.default_rng(4)
+    main, _ = _frames(rng)
+    p = tmp_path / "plain.dng"
+    tags = [(50706, "B", 4, (1, 4, 0, 0), True), (271, "s", 0, "Canon", True), (272, "s", 0, "Canon EOS 5D Mark IV", True),
+            (33421, "H", 2, (2, 2), False), (33422, "B", 4, (0, 1, 1, 2), False), (50714, "I", 1, 512, False),
+            (50717, "I", 1, 16383, False)]
+    tifffile.imwrite(p, main, photometric=32803, subfiletype=0, metadata=None, extratags=tags)
+    with pytest.raises(BadInputError, match="only one raw frame"):
+        read_dual_pixel(p)
