@@ -26,10 +26,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests" / "process"))
 
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns  # noqa: E402
-from synth import PlaneScene, look_at_rig, render_projection, world_points  # noqa: E402
+from tests.process.synth import PlaneScene, look_at_rig, render_projection, world_points  # noqa: E402
 
 
 def _true_proj(scene, proj, cam):
@@ -130,7 +129,7 @@ def part_a(tmp: Path) -> None:
 def part_b(scale: str, tmp: Path) -> None:
     from dp5k_process.package import process_sessions
     from dp5k_process.pipeline import ProcessConfig
-    from sim_session import write_session
+    from tests.process.sim_session import write_session
 
     t0 = time.perf_counter()
     write_session(tmp / "raw", "wall", scale=scale, f_numbers=(1.8, 2.0, 2.8, 4.0, 5.6), board_on_wall=True)

@@ -14,8 +14,8 @@ from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
 from dp5k_process.pipeline import ProcessConfig
 from dp5k_process.validate import plane_error, validate_depth
-from sim_session import wall_scene, write_session
-from truth import half, seen_by_both
+from .sim_session import wall_scene, write_session
+from .truth import half, seen_by_both
 
 pytestmark = pytest.mark.slow
 
