@@ -150,3 +150,27 @@ def test_cli_process_resumes_and_validate_depth_rejects_bad_path(processed, tmp_
     assert "manifest.json missing" in res.output
     res = CliRunner().invoke(main, ["-q", "process", str(raw), str(tmp_path / "o"), "--size", "12by3"])
     assert res.exit_code == 3 and "WxH" in res.output
+
+
+def test_session_from_dp5k_capture_sim(tmp_path):
+    """The contract with the capture stage: a session written by ``dp5k capture --sim`` processes as is."""
+    import cv2
+    from click.testing import CliRunner
+
+    from dp5k_cli import main
+
+    res = CliRunner().invoke(main, ["-q", "capture", "--scene", "wall", "--sim", "--sim-scale", "small",
+                                    "--out", str(tmp_path / "raw")])
+    assert res.exit_code == 0, res.output
+    outcomes = process_sessions(tmp_path / "raw", tmp_path / "out", ProcessConfig())
+    assert [o.status for o in outcomes] == ["ok"]
+    truth = json.loads((tmp_path / "raw" / "wall" / "ground_truth" / "truth.json").read_text())
+    reader = DatasetReader(tmp_path / "out")
+    for cam in ("cam0", "cam1"):
+        pair = reader.load(f"wall_{cam}_f1.8")
+        z = cv2.imread(str(tmp_path / "raw" / "wall" / "ground_truth" / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED)
+        zh = half(np.where(z > 0, z.astype(np.float64), np.nan), "mean")
+        ok = pair.valid & np.isfinite(zh)
+        assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
+        F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
+        assert abs(pair.params.focus_distance_mm - F) / F <= 0.005
