@@ -112,8 +112,8 @@ def tile_disparity(left: Tensor, right: Tensor, mask: Tensor, tile: int = 16, it
         m = mask.float()
         num = F.avg_pool2d((g * (L - Rw) * m)[..., : nty * tile, : ntx * tile], tile)
         den = F.avg_pool2d((g * g * m)[..., : nty * tile, : ntx * tile], tile)
-        # R(x) = L(x - d): warping R by +d gives L, and L - R_w ~ -delta d * g
-        d = d - num / den.clamp(min=1e-12)
+        # R(x) = L(x - d): R_w(x) = R(x + d_est) ~ L(x) + (d_est - d) g, so d = d_est + sum g (L - R_w) / sum g^2
+        d = d + num / den.clamp(min=1e-12)
         d = d.clamp(-20, 20)
         w = den
     return d[:, 0], w[:, 0]

@@ -186,16 +186,24 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
 
 
 def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
-    """(K,) CoC node positions spanning the valid CoC range (at least 2 nodes)."""
+    """(K,) CoC nodes on a fixed grid ``k * step`` covering the valid CoC range (at least 2 nodes).
+
+    The grid does not move when the CoC map changes slightly (a fitted parameter's finite difference),
+    so interpolation error stays constant and Jacobians stay clean; ``step`` grows in fixed ratios
+    (1, 1.5, 2, 3, 4, 6, ... x ``node_step_px``) only when the range needs more than ``max_nodes``.
+    """
     v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
     if v.numel() == 0:
         v = coc.reshape(-1)
     lo, hi = float(v.min()), float(v.max())
-    if hi - lo < 1e-6:
-        return torch.tensor([lo - 0.5, lo + 0.5], device=coc.device)
-    k = int(math.ceil((hi - lo) / cfg.node_step_px)) + 1
-    k = max(2, min(k, cfg.max_nodes))
-    return torch.linspace(lo, hi, k, device=coc.device)
+    step = cfg.node_step_px
+    factors = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
+    for f in factors:
+        step = cfg.node_step_px * f
+        if math.floor(hi / step) - math.floor(lo / step) + 2 <= cfg.max_nodes:
+            break
+    k0, k1 = math.floor(lo / step), math.floor(hi / step) + 1
+    return torch.arange(k0, k1 + 1, device=coc.device, dtype=torch.float32) * step
 
 
 def _embed_kernel_fft(kernels: Tensor, Hp: int, Wp: int) -> Tensor:
