@@ -138,6 +138,13 @@ class StudioOptics:
         self.scene_studio = Studio(make_scene(scene, self.srig), self.srig, effects, seed=seed)
         self.calib_studio = Studio(plane_scene(8.0), self.srig, effects, seed=seed + 1)
         self.studio = self.scene_studio  # the scene: focus, ground truth, DP and structured-light shots
+        if self.scene_studio.scene.name == "wall":
+            # the depth-validation scene: the printed board is pasted on the wall for every shot
+            from calib.board import WALL_BOARD
+
+            from .studio import wall_board_pose
+
+            self.scene_studio.set_board_pose(wall_board_pose(self.scene_studio.scene, WALL_BOARD.size_m), WALL_BOARD)
         self._active = self.scene_studio
         self.projector = projector
         self.seed = seed
