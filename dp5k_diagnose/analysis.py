@@ -165,8 +165,11 @@ def lr_ratio_table(predict: Predict, samples: list[Sample], n_bins: int = 8) -> 
     for name, v in (("x", x), ("y", y)):
         edges = np.linspace(-1, 1, n_bins + 1)
         idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, n_bins - 1)
-        def ratio(a: np.ndarray, c: np.ndarray) -> list[float]:
-            return (np.bincount(idx, a, n_bins) / np.maximum(np.bincount(idx, c, n_bins), 1e-12)).tolist()
+        cnt = np.bincount(idx, minlength=n_bins)
+
+        def ratio(a: np.ndarray, c: np.ndarray) -> list[float | None]:
+            r = np.bincount(idx, a, n_bins) / np.maximum(np.bincount(idx, c, n_bins), 1e-12)
+            return [float(x) if n > 0 else None for x, n in zip(r, cnt)]
         out[name] = {"bin_center": ((edges[:-1] + edges[1:]) / 2).tolist(), "measured": ratio(ml_, mr_), "predicted": ratio(pl2, pr2)}
     return out
 

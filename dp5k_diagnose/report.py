@@ -58,8 +58,9 @@ def plot_ratio(ratio: dict[str, Any], path: Path, title: str) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(8, 3))
     for ax, k in zip(axes, ("x", "y")):
         t = ratio[k]
-        ax.plot(t["bin_center"], t["measured"], "o-", label="measured")
-        ax.plot(t["bin_center"], t["predicted"], "s--", label="model")
+        nan = lambda v: [np.nan if x is None else x for x in v]  # noqa: E731
+        ax.plot(t["bin_center"], nan(t["measured"]), "o-", label="measured")
+        ax.plot(t["bin_center"], nan(t["predicted"]), "s--", label="model")
         ax.set_xlabel(f"field {k}"); ax.set_ylabel("mean L / mean R")
     axes[0].legend(fontsize=7)
     fig.suptitle(title + ": L/R brightness ratio across the field", fontsize=9)
