@@ -31,9 +31,10 @@ from dp5k_common.errors import BadInputError, StageError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel, read_frame
 
-from .filters import FilterConfig, filter_depth, recursive_fill
+from .filters import FilterConfig, backproject, filter_depth, recursive_fill
 from .focus import FocusConfig, focus_distance
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
+from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
 from .session import Session, check_size
 from .triangulate import (TriangulationConfig, code_view, depth_from_match, match_in_other, normalised_rays)
@@ -47,6 +48,8 @@ class ProcessConfig:
         out_size: (W, H) of the output; None = half the raw size (the half-size demosaic).
         gray: decoder settings; None = :meth:`GrayCodeConfig.for_linear_raw` at the session's projector size.
         tri, filt: matching and filter settings.
+        projector: self-calibration of the projector from the stereo points, for camera-projector depth where
+            the other camera cannot see (``dp5k_process.projector``); None = stereo depth only.
         focus_window_px: Eq. 5 window (w, h) in pixels of a ``focus_window_ref_width``-wide image (paper 30 x 20
             at 1680; the released code uses 60 x 40); scaled with the output width, at least 3 x 3.
         calib: calibration acceptance bounds.
@@ -59,6 +62,7 @@ class ProcessConfig:
     gray: GrayCodeConfig | None = None
     tri: TriangulationConfig = TriangulationConfig()
     filt: FilterConfig = FilterConfig()
+    projector: ProjectorCalibConfig | None = ProjectorCalibConfig()
     focus_window_px: tuple[int, int] = (30, 20)
     focus_window_ref_width: int = 1680
     calib: CalibConfig = CalibConfig()
@@ -175,7 +179,11 @@ def decode_camera(session: Session, cam: str, gcfg: GrayCodeConfig) -> tuple[Gra
 def depth_for_camera(
     decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
 ) -> tuple[NDArray[np.float32], dict[str, Any]]:
-    """Depth (metres, NaN invalid) on ``ref``'s raw pixel grid: per scale match + triangulate + filter, then Eq. 3."""
+    """Depth (metres, NaN invalid) on ``ref``'s raw pixel grid: per scale match + triangulate + filter, then Eq. 3.
+
+    Pixels the other camera cannot match (hidden from it by a nearer object, or outside its view) are
+    triangulated against the projector, calibrated from this camera's stereo points (``cfg.projector``).
+    """
     other = "cam1" if ref == "cam0" else "cam0"
     cal = {"cam0": st.cam0, "cam1": st.cam1}
     if ref == "cam0":
@@ -183,18 +191,39 @@ def depth_for_camera(
     else:
         R, T = st.R.T, -st.R.T @ st.T
     rays = normalised_rays(cal[ref])
+    fx = float(cal[ref].K[0, 0])
     n_scales = decs[ref].cfg.n_scales
     coarsest = n_scales - 1
     coarse_other = code_view(*decs[other].at_scale(coarsest), decs[other].scale_size(coarsest), cfg.tri, coarsest)
-    depths, info = [], {"per_scale_coverage": []}
+    info: dict[str, Any] = {"per_scale_coverage": [], "per_scale_coverage_stereo": []}
+    views, stereo = [], []
     for s in range(min(n_scales, cfg.filt.fill_steps)):  # scales Eq. 3 does not reach are not computed
         v_ref = code_view(*decs[ref].at_scale(s), decs[ref].scale_size(s), cfg.tri, s)
         v_oth = coarse_other if s == coarsest else code_view(*decs[other].at_scale(s), decs[other].scale_size(s), cfg.tri, s)
         q, ok = match_in_other(v_ref, v_oth, cfg.tri, coarse=coarse_other)
-        d = depth_from_match(rays, float(cal[ref].K[0, 0]), q, ok, cal[other], R, T, cfg.tri)
-        d = filter_depth(d, rays, cfg.filt)
-        depths.append(d)
-        info["per_scale_coverage"].append(float(np.isfinite(d).mean()))
+        views.append(v_ref)
+        stereo.append(depth_from_match(rays, fx, q, ok, cal[other], R, T, cfg.tri))
+    filtered = [filter_depth(d, rays, cfg.filt) for d in stereo]
+    model = None
+    if cfg.projector is not None:  # where the other camera cannot see: reference camera + projector
+        pts, codes = [], []
+        for v, d in zip(views, filtered):
+            X, m = backproject(d, rays)
+            pts.append(X)
+            codes.append(np.column_stack([v.to_full(v.u)[m], v.to_full(v.v)[m]]))
+        model = calibrate_projector(np.concatenate(pts), np.concatenate(codes), decs[ref].scale_size(0), cfg.projector)
+    info["projector_rms_px"] = None if model is None else model.rms_px
+    info["projector_points"] = 0 if model is None else model.n_points
+    depths = []
+    for s, (v, d, f) in enumerate(zip(views, stereo, filtered)):
+        info["per_scale_coverage_stereo"].append(float(np.isfinite(f).mean()))
+        if model is not None:
+            col, row, valid = decs[ref].at_scale(s)
+            todo = v.valid & ~np.isfinite(d) & ~mixed_codes(col, row, valid, v.u, v.v)
+            dp = procam_depth(rays, fx, v.to_full(v.u), v.to_full(v.v), todo, model, cfg.tri)
+            f = filter_depth(np.where(np.isfinite(d), d, dp), rays, cfg.filt)
+        depths.append(f)
+        info["per_scale_coverage"].append(float(np.isfinite(f).mean()))
     fused = recursive_fill(depths, cfg.filt.fill_steps)
     info["coverage_raw"] = float(np.isfinite(fused).mean())
     return fused, info
