@@ -5,7 +5,7 @@ Usage::
     python benchmarks/bench_simulators.py [--device cpu|cuda] [--peer-size 840x560] [--quick]
 
 Prints a Markdown table (docs/simulators.md keeps the last run's numbers). The scene is synthetic: a
-textured image, a depth ramp from 0.5 m to 10 m focused at 2 m, and the DP5K optics (85 mm, f/1.8,
+textured image, a depth ramp from 1 m to 10 m focused at 2 m, and the DP5K optics (85 mm, f/1.8,
 36 mm sensor), so CoC diameters span the paper's range scaled to the image width. Peak memory is the CUDA
 allocator's peak on GPU, and the growth of the process's peak RSS on CPU (measured in a fresh process).
 """
@@ -35,12 +35,12 @@ from neural_dp.simulators.registry import PEERS, base_available, get_simulator  
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:
-    """A textured image with a left-to-right depth ramp (0.5 m .. 10 m, focus 2 m), DP5K optics at f/1.8."""
+    """A textured image with a left-to-right depth ramp (1 m .. 10 m, focus 2 m), DP5K optics at f/1.8."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:H, :W] / max(H, W)
     tex = 0.5 + 0.25 * np.sin(40 * xx[..., None] * np.array([1, 1.3, 0.7])) * np.cos(31 * yy[..., None])
     sharp = np.clip(tex + rng.normal(0, 0.05, (H, W, 3)), 0, 1).astype(np.float32)
-    depth = np.tile(np.geomspace(500, 10000, W), (H, 1)).astype(np.float32)
+    depth = np.tile(np.geomspace(1000, 10000, W), (H, 1)).astype(np.float32)
     pitch = 36.0 / W
     coc = coc_diameter_px(depth, 2000.0, 85.0, 1.8, pitch).astype(np.float32)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
@@ -118,29 +118,27 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(neural_inference(args.device, nw, nh, args.channels)))
         return 0
     torch.manual_seed(0)
-    rows = []
     batch = scene(pw, ph, args.device)
     coc = batch.coc_px.abs()
+    dev = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU, {torch.get_num_threads()} threads"
+    print(f"device: {dev}; torch {torch.__version__}; peer scene |CoC| max {float(coc.max()):.1f} px, "
+          f"median {float(coc.median()):.1f} px", flush=True)
+    print("| simulator | size | MP/s | s/image | peak MiB |")
+    print("|---|---|---|---|---|", flush=True)
     names = list(PEERS) + (["base"] if base_available() else [])
     for name in names:
         sim = get_simulator(name).to(args.device)
         with torch.no_grad():
             t = time_call(lambda: sim(batch), args.device, args.repeat)
-        rows.append((name, f"{pw}x{ph}", pw * ph / 1e6 / t, t, float("nan")))
+        print(f"| {name} | {pw}x{ph} | {pw * ph / 1e6 / t:.3f} | {t:.2f} | |", flush=True)
     child = subprocess.run([sys.executable, __file__, "--_neural_child", "--device", args.device, "--neural-size",
                             args.neural_size, "--channels", str(args.channels)], capture_output=True, text=True, check=True)
     nres = json.loads(child.stdout.strip().splitlines()[-1])
-    rows.append(("neural (inference)", f"{nw}x{nh}", nres["mp_per_s"], nres["seconds"], nres["peak_mib"]))
+    print(f"| neural (inference, base channels {args.channels}) | {nw}x{nh} | {nres['mp_per_s']:.3f} | "
+          f"{nres['seconds']:.2f} | {nres['peak_mib']:.0f} |", flush=True)
     sps = train_throughput(args.device, args.train_crop, args.train_batch, args.channels, args.repeat)
-    dev = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU, {torch.get_num_threads()} threads"
-    print(f"device: {dev}; torch {torch.__version__}; peer scene |CoC| max {float(coc.max()):.1f} px, "
-          f"median {float(coc.median()):.1f} px")
-    print("| simulator | size | MP/s | s/image | peak MiB |")
-    print("|---|---|---|---|---|")
-    for name, size, mps, t, mem in rows:
-        print(f"| {name} | {size} | {mps:.3f} | {t:.2f} | {'' if np.isnan(mem) else f'{mem:.0f}'} |")
     print(f"\nNeural DP training: {sps:.2f} samples/s ({args.train_crop}x{args.train_crop} crops, batch "
-          f"{args.train_batch}, base channels {args.channels})")
+          f"{args.train_batch}, base channels {args.channels})", flush=True)
     return 0
 
 
