@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from calib.calibrate import CameraCalibration
 
+from .filters import valid_median
 from .triangulate import TriangulationConfig, midpoint_triangulate
 
 
@@ -167,8 +168,6 @@ def mixed_codes(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[n
     Camera-camera matching rejects such pixels itself (the other camera's codes do not fit); the projector
     ray, which has no second code map to disagree with, would turn them into flying pixels between surfaces.
     """
-    from .filters import valid_median
-
     mu = valid_median(np.where(valid, col, np.nan).astype(np.float32), ksize)
     mv = valid_median(np.where(valid, row, np.nan).astype(np.float32), ksize)
     with np.errstate(invalid="ignore"):

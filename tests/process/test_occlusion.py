@@ -15,6 +15,7 @@ import pytest
 from calib.calibrate import CameraCalibration
 from dp5k_process.projector import (ProjectorCalibConfig, ProjectorModel, calibrate_projector, mixed_codes,
                                      procam_depth)
+from dp5k_process.triangulate import smooth_code
 
 K_PROJ = np.array([[2880.0, 0, 959.5], [0, 2880.0, 659.5], [0, 0, 1]])
 R_PROJ = cv2.Rodrigues(np.radians([2.0, -3.0, 0.5]))[0]
@@ -73,8 +74,6 @@ def test_mixed_codes_flags_depth_edges_only():
     col = np.where(xs < 20, 100 + xs, 400 + xs).astype(np.int32)  # code jump at a depth edge x = 19 | 20
     row = (50 + ys).astype(np.int32)
     valid = np.ones((H, W), bool)
-    from dp5k_process.triangulate import smooth_code
-
     u, v = smooth_code(col, valid, 1.0), smooth_code(row, valid, 1.0)
     mixed = mixed_codes(col, row, valid, u, v)
     assert mixed[10:20, 18:22].all()
