@@ -7,6 +7,7 @@ progress bars and the error policy (one line on stderr, a distinct exit code per
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 import traceback
@@ -19,8 +20,40 @@ from dp5k_common.errors import DP5KError
 from dp5k_common.progress import set_progress_enabled
 
 
+# name -> (module, attribute, one-line help). Commands are imported only when run, so ``dp5k --help`` and
+# light commands start without loading torch, Open3D or pygame. tests/test_cli.py keeps the help in sync.
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "capture": ("dp5k_capture.cli", "capture_command", "Capture one scene on the rig (or --sim): DP raws, ChArUco, Gray code."),
+    "devices": ("dp5k_capture.cli", "devices_command", "List Canon bodies (USB 04a9, serials) and serial ports."),
+    "verify": ("dp5k_capture.cli", "verify_command", "Verify raw sessions: sizes, SHA-256, counts, Dual Pixel frames."),
+    "process": ("dp5k_process.cli", "process_command", "Process raw sessions into the dataset format v1."),
+    "validate-depth": ("dp5k_process.cli", "validate_depth_command", "Depth accuracy against a ChArUco wall (Eq. 4)."),
+    "check": ("dp5k_common.check", "check_command", "Validate a format-v1 dataset pair by pair."),
+    "studio": ("dp5k_capture.sim.studio.cli", "studio_group", "The virtual studio: scenes, renders, datasets with effects."),
+    "train": ("neural_dp.cli", "train_command", "Train the Neural DP Simulator on a dataset."),
+    "evaluate": ("neural_dp.cli", "evaluate_command", "Compare every DP simulator: masked MAE / PSNR / SSIM (Table 2)."),
+    "synthesize": ("neural_dp.cli", "synthesize_command", "Synthesize DP pairs from RGBD frames with any simulator."),
+    "diagnose": ("dp5k_diagnose.cli", "diagnose_command", "Name what a DP simulator gets wrong, extend it, measure the gain."),
+    "import": ("dp5k_diagnose.cli", "import_command", "Import public DP data (sdirt) into the dataset format v1."),
+    "demo": ("dp5k_demo.cli", "demo_command", "Run the whole pipeline on the virtual studio; write a report."),
+}
+
+
 class _Group(click.Group):
-    """Turns dp5k errors into one line on stderr and a distinct exit code."""
+    """Lazy command table; turns dp5k errors into one line on stderr and a distinct exit code."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module, attr, _ = COMMANDS[name]
+        return getattr(importlib.import_module(module), attr)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, COMMANDS[name][2]) for name in self.list_commands(ctx)])
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -62,21 +95,6 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     if quiet:  # DP5K_PROGRESS=0 in the environment also hides them (CI logs)
         set_progress_enabled(False)
 
-
-def _register() -> None:
-    from dp5k_common.check import check_command
-
-    main.add_command(check_command)
-    from dp5k_capture.sim.studio.cli import studio_group; main.add_command(studio_group)  # noqa: E702
-    from dp5k_capture.cli import capture_command, devices_command, verify_command; [main.add_command(c) for c in (capture_command, devices_command, verify_command)]  # noqa: E702
-    from neural_dp.cli import evaluate_command, synthesize_command, train_command; [main.add_command(c) for c in (train_command, evaluate_command, synthesize_command)]  # noqa: E702
-    from dp5k_process.cli import process_command, validate_depth_command; [main.add_command(c) for c in (process_command, validate_depth_command)]  # noqa: E702
-    from dp5k_diagnose.cli import diagnose_command, import_command; [main.add_command(c) for c in (diagnose_command, import_command)]  # noqa: E702
-
-    from dp5k_demo.cli import demo_command; main.add_command(demo_command)  # noqa: E702
-
-
-_register()
 
 if __name__ == "__main__":
     main()

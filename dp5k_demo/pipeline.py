@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import click
 import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
@@ -66,7 +67,7 @@ def run_cli(args: list[str]) -> None:
     from dp5k_cli import main
 
     name = args[0]
-    command = main.commands.get(name)
+    command = main.get_command(click.Context(main), name)
     if command is None:
         raise StageError(f"this dp5k has no '{name}' command", where="demo")
     command.main(args[1:], prog_name=f"dp5k {name}", standalone_mode=False, obj={"verbose": 0})

@@ -46,3 +46,33 @@ def test_check_detects_scene_crossing_splits(tmp_path: Path) -> None:
     p.write_text(json.dumps(params))
     result = CliRunner().invoke(main, ["-q", "check", str(tmp_path / "ds")])
     assert result.exit_code == 4 and "appear in both" in result.output
+
+
+def test_lazy_command_table_matches_the_commands() -> None:
+    """Every listed command imports under its own name and has help text; the listed one-liners fit one line."""
+    import click
+
+    from dp5k_cli import COMMANDS
+
+    ctx = click.Context(main)
+    for name, (_, _, short) in COMMANDS.items():
+        cmd = main.get_command(ctx, name)
+        assert isinstance(cmd, click.Command) and cmd.name == name
+        assert cmd.help and cmd.help.strip(), name
+        assert short.endswith(".") and len(short) <= 72, name
+
+
+def test_help_does_not_import_heavy_stages() -> None:
+    import subprocess
+    import sys
+
+    code = "import sys; from click.testing import CliRunner; from dp5k_cli import main; " \
+           "r = CliRunner().invoke(main, ['--help']); assert r.exit_code == 0; " \
+           "print(sorted(m for m in ('torch', 'open3d', 'pygame', 'neural_dp') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"
+
+
+def test_unknown_command_is_a_usage_error() -> None:
+    result = CliRunner().invoke(main, ["nope"])
+    assert result.exit_code == 2 and "No such command" in result.output
