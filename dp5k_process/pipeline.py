@@ -26,7 +26,7 @@ from calib.board import DEFAULT_BOARD, BoardSpec
 from calib.calibrate import (CalibConfig, CameraCalibration, StereoCalibration, calibrate_camera,
                              stereo_calibrate)
 from calib.detect import detect_charuco
-from dp5k_common.dataset import PairParams
+from dp5k_common.dataset import Pair, PairParams
 from dp5k_common.errors import BadInputError, StageError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel, read_frame
@@ -71,23 +71,11 @@ class ProcessConfig:
 
 
 @dataclass
-class PairData:
-    """One pair ready to write."""
-
-    params: PairParams
-    sharp: NDArray[np.float32]
-    left: NDArray[np.float32]
-    right: NDArray[np.float32]
-    depth_mm: NDArray[np.float32]
-    coc_px: NDArray[np.float32]
-
-
-@dataclass
 class SceneResult:
     """Everything ``process_scene`` made: the pairs, the calibration and the report numbers."""
 
     scene: str
-    pairs: list[PairData]
+    pairs: list[Pair]
     calibration: StereoCalibration
     report: dict[str, Any] = field(default_factory=dict)
     depth_m: dict[str, NDArray[np.float32]] = field(default_factory=dict)
@@ -301,7 +289,7 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
 
     report: dict[str, Any] = {"scene": session.scene, "manifest_scene": session.manifest.get("scene"),
                               "calibration": cal_info, "cameras": {}}
-    pairs: list[PairData] = []
+    pairs: list[Pair] = []
     depth_out: dict[str, NDArray[np.float32]] = {}
     timings["depth_s"] = timings["views_s"] = timings["pairs_s"] = 0.0
     for cam in ("cam0", "cam1"):
@@ -351,7 +339,7 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
                        "depth_coverage": cam_rep["depth_coverage"], "aux_view": session.aux_view,
                        "source": "dp5k process"},
             )
-            pairs.append(PairData(params, np.clip(sharp_main * ratio, 0, 1), np.clip(left, 0, 1), np.clip(right, 0, 1),
+            pairs.append(Pair(params, np.clip(sharp_main * ratio, 0, 1), np.clip(left, 0, 1), np.clip(right, 0, 1),
                                   np.nan_to_num(depth_m * 1000.0, nan=0.0).astype(np.float32), coc))
             cam_rep["pairs"].append(pid)
             timings["pairs_s"] += time.perf_counter() - t0
