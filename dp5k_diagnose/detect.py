@@ -5,7 +5,7 @@ parameters (plus the gain, and the rim softness for PSF-shape effects) are fitte
 (training crops). The extension is then judged on a *detection* set of pairs it was not fitted on
 (validation split, else the remaining training pairs), tile by tile:
 
-* per pair i: :math:`\Delta_i = \mathrm{MSE}_i(\text{base}) - \mathrm{MSE}_i(\text{base} + E)` (pairs are the
+* per pair i: :math:`\Delta_i = \ln(\mathrm{MSE}_i(\text{base}) / \mathrm{MSE}_i(\text{base} + E))` (pairs are the
   independent units; with fewer than 4 detection pairs, 32 px tiles are used instead);
 * statistic: the one-sided one-sample t statistic of :math:`\Delta_i` (H0: mean 0), its p-value;
 * effect size: the relative reduction of the pooled MSE, :math:`\sum_t \Delta_t / \sum_t \mathrm{MSE}_t(\text{base})`.
@@ -74,7 +74,7 @@ class DetectConfig:
     """
 
     tile_px: int = 32
-    alpha: float = 0.01
+    alpha: float = 0.05
     min_effect: float = 0.15
     lm_iters: int = 3
     refine_top: int = 2
@@ -151,12 +151,14 @@ def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.nda
 
 
 def clustered_delta(base_su: np.ndarray, su: np.ndarray, co: np.ndarray, owners: np.ndarray) -> np.ndarray:
-    """Per-pair mean MSE reduction (tiles of one pair are correlated, pairs are the independent units);
-    per-tile values when fewer than 4 pairs are available."""
+    """Per-pair log MSE ratio ``ln(MSE_base / MSE_E)`` (tiles of one pair are correlated, pairs are the
+    independent units; a log ratio is comparable across pairs with little and much blur); per tile when
+    fewer than 4 pairs are available."""
     ids = np.unique(owners)
+    eps = 1e-20
     if ids.size < 4:
-        return (base_su - su) / np.maximum(co, 1)
-    return np.array([(base_su[owners == i].sum() - su[owners == i].sum()) / max(co[owners == i].sum(), 1) for i in ids])
+        return np.log((base_su + eps) / (su + eps))
+    return np.array([np.log((base_su[owners == i].sum() + eps) / (su[owners == i].sum() + eps)) for i in ids])
 
 
 def one_sided_t(x: np.ndarray) -> tuple[float, float]:
