@@ -37,6 +37,7 @@ class DemoScale:
         crop: training crop in px.
         diag_scenes: scenes of the hidden-effect dataset.
         rgbd_frames: RGBD frames given to ``synthesize``.
+        eval_pairs: pairs per dataset that ``evaluate`` compares the simulators on.
     """
 
     name: str
@@ -49,12 +50,13 @@ class DemoScale:
     crop: int
     diag_scenes: int
     rgbd_frames: int
+    eval_pairs: int
 
 
 SCALES: dict[str, DemoScale] = {
-    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2),
-    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4),
-    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "living"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8),
+    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2, 4),
+    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4, 8),
+    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8, 0),
 }
 
 # Realistic effects for the training data (the world is not the ideal model): Canon-like weak disparity,
@@ -133,7 +135,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         for name, ds in (("studio", train_ds), ("processed", processed)):
             eout = out / f"evaluate-{name}"
             split = "test" if name == "studio" else _nonempty_split(ds)
-            run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), "--checkpoint", str(ckpt)])
+            run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), "--checkpoint", str(ckpt),
+                     "--max-pairs", str(scale.eval_pairs), "--figures", "1"])
             results[name] = {"out": str(eout), "split": split}
         return results
 

@@ -50,8 +50,8 @@ class Section:
         self.data[key] = {"header": header, "rows": rows}
         head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
         body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(v, digits))}</td>" for v in row) + "</tr>" for row in rows)
-        cap = f"<caption>{html.escape(caption)}</caption>" if caption else ""
-        self.parts.append(f"<table>{cap}<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
+        note = f'<p class="note">{html.escape(caption)}</p>' if caption else ""
+        self.parts.append(f"{note}<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
 
     def figure(self, rel_path: str, caption: str) -> None:
         self.parts.append(
