@@ -56,7 +56,7 @@ def neural_reach_study(dataset: str | Path, out: str | Path, kernel: int = 11, e
     out = Path(out)
     reader = DatasetReader(dataset)
     held = full_samples(load_pairs(reader, reader.ids("test") or reader.ids("val")))
-    res: dict[str, Any] = {"bins_px": [list(b) for b in zip(BINS_PX[:-1], BINS_PX[1:])], "kernels": {}}
+    res: dict[str, Any] = {"bins_px": [[lo, hi if math.isfinite(hi) else None] for lo, hi in zip(BINS_PX[:-1], BINS_PX[1:])], "kernels": {}}
     per = {}
     for k in (5, kernel):
         cfg = TrainConfig(seed=seed, device="cpu",
@@ -67,13 +67,13 @@ def neural_reach_study(dataset: str | Path, out: str | Path, kernel: int = 11, e
         sim = get_simulator("neural", checkpoint=out / f"k{k}" / "best.pt")
         sim.eval()
         per[k] = per_bin_psnr(sim, held)
-        res["kernels"][str(k)] = {"best_val_ssim": tr.best_val_ssim, "psnr_per_bin": np.nanmean(per[k], 0).tolist()}
+        res["kernels"][str(k)] = {"best_val_ssim": tr.best_val_ssim, "psnr_per_bin": [float(x) if np.isfinite(x) else None for x in np.nanmean(per[k], 0)]}
     gain = per[kernel] - per[5]
     res["gain_per_bin"] = []
     for j in range(gain.shape[1]):
         g = gain[:, j]
         g = g[np.isfinite(g)]
-        res["gain_per_bin"].append({"mean_db": float(g.mean()) if g.size else float("nan"), "ci95": list(bootstrap_ci(g, seed=seed)) if g.size else [float("nan")] * 2, "n_pairs": int(g.size)})
+        res["gain_per_bin"].append({"mean_db": float(g.mean()) if g.size else None, "ci95": list(bootstrap_ci(g, seed=seed)) if g.size else None, "n_pairs": int(g.size)})
     write_json_atomic(out / "neural_reach.json", res)
     return res
 
