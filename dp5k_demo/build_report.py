@@ -112,6 +112,8 @@ def build_report(out: Path, scale: DemoScale, records: dict[str, dict[str, Any]]
     # 2. processing
     processed = out / "processed"
     s = rep.section("2. Processed dataset and accuracy against ground truth")
+    for skip in records["process"]["result"].get("skipped", []):
+        s.text(f"Scene '{skip['scene']}' was skipped by processing, as a real capture would be: {skip['reason']}")
     acc = depth_accuracy(processed, raw)
     s.table("depth_accuracy", ["scene", "camera", "median |rel. depth err| (%)", "coverage (%)", "focus F (mm)",
                                "true F (mm)", "focus err (%)"],
@@ -127,7 +129,7 @@ def build_report(out: Path, scale: DemoScale, records: dict[str, dict[str, Any]]
         name = f"depth_coc_{a['pair_id']}.png"
         figures.depth_coc_figure(pair, figs / name, truth)
         s.figure(f"report-figures/{name}", f"{a['pair_id']}: depth and signed CoC with colour bars, and the depth error.")
-    for scene in scale.scenes:
+    for scene in sorted({a["scene"] for a in acc}):
         sheet = processed / "reports" / scene / "contact_sheet.png"
         if sheet.is_file():
             s.figure(_copy(sheet, out, f"report-figures/contact_{scene}.png"), f"Processing contact sheet of '{scene}' (sharp, left, right, depth, CoC).")

@@ -17,7 +17,7 @@ import click
 import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
-from dp5k_common.errors import StageError
+from dp5k_common.errors import PartialFailureError, StageError
 
 from .stages import Stage
 
@@ -107,8 +107,18 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
             link = staging / scene
             if not link.exists():
                 link.symlink_to((raw / scene).resolve(), target_is_directory=True)
-        run_cli(["process", str(staging), str(processed), "--seed", str(seed)])
-        return {"dataset": str(processed)}
+        skipped = []
+        try:
+            run_cli(["process", str(staging), str(processed), "--seed", str(seed)])
+        except PartialFailureError:
+            # as `dp5k process` does for a user: failed scenes are reported and skipped, the rest go on
+            for scene in scale.scenes:
+                rep = processed / "reports" / scene / "report.json"
+                if rep.is_file() and json.loads(rep.read_text()).get("status") == "failed":
+                    skipped.append({"scene": scene, "reason": json.loads(rep.read_text()).get("reason", "?")})
+            if len(skipped) == len(scale.scenes) or not (processed / "dataset.json").is_file():
+                raise
+        return {"dataset": str(processed), "skipped": skipped}
 
     def validate(ctx: dict[str, Any]) -> dict[str, Any]:
         vout = out / "validate-depth"
