@@ -14,6 +14,7 @@ from numpy.typing import NDArray  # noqa: E402
 from dp5k_common.dataset import Pair  # noqa: E402
 from dp5k_common.io import atomic_path  # noqa: E402
 from dp5k_common.rawfile import read_dual_pixel  # noqa: E402
+from dp5k_process.rawimage import dp_views  # noqa: E402
 
 
 def _save(fig: plt.Figure, path: Path) -> None:
@@ -30,19 +31,10 @@ def display(linear: NDArray[np.floating], exposure: float | None = None) -> NDAr
 
 
 def raw_preview(path: Path) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Half-size RGB previews (H/2, W/2, 3) of a Dual Pixel RAW's main frame and its aux (left) frame.
-
-    The RGGB mosaic's 2x2 cells become one RGB pixel (R, mean of the greens, B), black subtracted, white balanced.
-    """
-    frames = read_dual_pixel(path)
-
-    def rgb(mosaic: NDArray[np.uint16]) -> NDArray[np.float32]:
-        m = mosaic.astype(np.float32) - frames.black_level
-        r, g1, g2, b = m[0::2, 0::2], m[0::2, 1::2], m[1::2, 0::2], m[1::2, 1::2]
-        wb = frames.wb_gains
-        return np.clip(np.dstack([r * wb[0], (g1 + g2) / 2 * wb[1], b * wb[2]]), 0, None)
-
-    return rgb(frames.main), rgb(frames.aux)
+    """Half-size white-balanced linear previews (H/2, W/2, 3) of a Dual Pixel RAW: the main frame and its
+    left photodiode, through processing's own demosaic (``dp5k_process.rawimage.dp_views``)."""
+    main, left, _ = dp_views(read_dual_pixel(path))
+    return main, left
 
 
 def capture_sheet(scene_dir: Path, path: Path) -> None:
