@@ -113,9 +113,10 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         except PartialFailureError:
             # as `dp5k process` does for a user: failed scenes are reported and skipped, the rest go on
             for scene in scale.scenes:
-                rep = processed / "reports" / scene / "report.json"
-                if rep.is_file() and json.loads(rep.read_text()).get("status") == "failed":
-                    skipped.append({"scene": scene, "reason": json.loads(rep.read_text()).get("reason", "?")})
+                path = processed / "reports" / scene / "report.json"
+                rep = json.loads(path.read_text()) if path.is_file() else {}
+                if rep.get("status") == "failed":
+                    skipped.append({"scene": scene, "reason": rep.get("reason", "?")})
             if len(skipped) == len(scale.scenes) or not (processed / "dataset.json").is_file():
                 raise
         return {"dataset": str(processed), "skipped": skipped}
