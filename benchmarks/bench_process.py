@@ -6,10 +6,13 @@ by dp5k's decoder and by OpenCV contrib's ``structured_light.GrayCodePattern.dec
 rendering's true projector pixel; and the floor: reading the 92 images once.
 
 Part B -- one scene end to end through ``dp5k process`` (a studio session; ``--scale paper`` for the paper's
-3360x2240 raw / 1680x1120 output, default ``medium`` because rendering a paper-scale session takes long on a
-small machine), with the time of each step from the scene report.
+3360x2240 raw / 1680x1120 output, default ``medium``), with the time of each step from the scene report, the
+peak memory of the process and the machine's load average. Rendering a paper-scale session (110 raw frames
+of 7.5 MP) takes tens of minutes on a 2-core machine: ``--keep DIR`` keeps the rendered session there and a
+later run with the same ``--keep`` reuses it, so the processing can be timed again without rendering.
 
-    .venv/bin/python benchmarks/bench_process.py [--scale medium] [--skip-e2e]
+    .venv/bin/python benchmarks/bench_process.py [--scale medium|paper] [--scene wall] [--keep DIR]
+                                                 [--skip-decode] [--skip-e2e]
 """
 
 from __future__ import annotations
@@ -126,32 +129,49 @@ def part_a(tmp: Path) -> None:
           "computes its disparity map (bucketing), which dp5k does later in its matching step.\n")
 
 
-def part_b(scale: str, tmp: Path) -> None:
+def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None) -> None:
+    import os
+    import resource
+
     from dp5k_process.package import process_sessions
     from dp5k_process.pipeline import ProcessConfig
     from tests.process.sim_session import write_session
 
+    raw = (keep or tmp) / "raw"
+    t_render = None
+    if not (raw / scene / "manifest.json").is_file():
+        t0 = time.perf_counter()
+        write_session(raw, scene, scale=scale, f_numbers=(1.8, 2.0, 2.8, 4.0, 5.6), board_on_wall=scene == "wall")
+        t_render = time.perf_counter() - t0
+    out = tmp / "out"
+    load0 = os.getloadavg()
     t0 = time.perf_counter()
-    write_session(tmp / "raw", "wall", scale=scale, f_numbers=(1.8, 2.0, 2.8, 4.0, 5.6), board_on_wall=True)
-    t_render = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    process_sessions(tmp / "raw", tmp / "out", ProcessConfig())
+    process_sessions(raw, out, ProcessConfig())
     t_total = time.perf_counter() - t0
-    rep = json.loads((tmp / "out" / "reports" / "wall" / "report.json").read_text())
-    print(f"| dp5k process, one scene ({scale}: raw {rep['raw_size'][0]}x{rep['raw_size'][1]}, output "
+    load1 = os.getloadavg()
+    peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    rep = json.loads((out / "reports" / scene / "report.json").read_text())
+    print(f"| dp5k process, one scene ({scene}, {scale}: raw {rep['raw_size'][0]}x{rep['raw_size'][1]}, output "
           f"{rep['image_size'][0]}x{rep['image_size'][1]}, 2 cameras x 5 f-numbers) | seconds |")
     print("|---|---|")
     for k, v in rep["timings"].items():
         print(f"| {k[:-2]} | {v:.2f} |")
     print(f"| total incl. writing pairs, report, contact sheet | {t_total:.2f} |")
-    print(f"\n(session rendered by the studio in {t_render:.1f} s; depth coverage "
-          f"{rep['cameras']['cam0']['depth_coverage']:.3f}, reprojection error "
-          f"{rep['calibration']['reprojection_error_px']:.3f} px)")
+    cams = rep["cameras"]
+    rendered = (f"session rendered by the studio in {t_render:.1f} s" if t_render is not None
+                else f"session reused from {raw}")
+    print(f"\n({rendered}; depth coverage {cams['cam0']['depth_coverage']:.3f} / {cams['cam1']['depth_coverage']:.3f}, "
+          f"reprojection error {rep['calibration']['reprojection_error_px']:.3f} px; peak memory of this process "
+          f"{peak_gib:.1f} GiB (rendering included); {os.cpu_count()} CPUs, load average "
+          f"{load0[0]:.2f} before / {load1[0]:.2f} after processing)")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scale", default="medium", help="studio scale for part B (small, medium, paper)")
+    ap.add_argument("--scene", default="wall", help="studio scene for part B (preset or seed)")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="keep the rendered part-B session in this folder and reuse it when it is already there")
     ap.add_argument("--skip-e2e", action="store_true")
     ap.add_argument("--skip-decode", action="store_true")
     args = ap.parse_args()
@@ -160,7 +180,7 @@ def main() -> None:
         if not args.skip_decode:
             part_a(Path(d) / "a")
         if not args.skip_e2e:
-            part_b(args.scale, Path(d) / "b")
+            part_b(args.scale, Path(d) / "b", args.scene, args.keep)
 
 
 if __name__ == "__main__":
