@@ -39,7 +39,7 @@ def _kernel_size(weights: Tensor, dim: int) -> int:
     return k
 
 
-def apply_kernels(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> Tensor:
+def apply_kernels(x: Tensor, weights: Tensor, *, padding: str = "replicate", dilation: int = 1) -> Tensor:
     """Apply a per-pixel K x K gather kernel to an image (shift-and-accumulate).
 
     Args:
@@ -49,9 +49,11 @@ def apply_kernels(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> 
             softmax does that), so handcrafted kernels can be applied too.
         padding: ``"replicate"`` (default; keeps sum-to-one kernels from darkening the border),
             ``"reflect"`` or ``"zeros"``.
+        dilation: spacing of the taps in px (``d``): tap ``(i, j)`` reads offset ``((i - r) d, (j - r) d)``,
+            so the kernel spans ``(K - 1) d + 1`` px (the multi-scale Neural DP kernels use d = 2, 4, ...).
 
     Returns:
-        (B, C, H, W) :math:`out(y,x) = \\sum_{ij} w_{ij}(y,x)\\, x(y+i-r, x+j-r)`, ``r = K // 2``.
+        (B, C, H, W) :math:`out(y,x) = \\sum_{ij} w_{ij}(y,x)\\, x(y+(i-r)d, x+(j-r)d)`, ``r = K // 2``.
 
     Example:
         >>> x = torch.arange(5.0).view(1, 1, 1, 5).expand(1, 1, 3, 5).contiguous()
@@ -68,25 +70,28 @@ def apply_kernels(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> 
         raise BadInputError(
             f"weights {tuple(weights.shape)} do not match image {tuple(x.shape)}", where="apply_kernels"
         )
+    if dilation < 1:
+        raise BadInputError(f"dilation must be >= 1, got {dilation}", where="apply_kernels")
+    d = int(dilation)
     r = k // 2
     mode = "constant" if padding == "zeros" else padding
-    xp = F.pad(x, (r, r, r, r), mode=mode)
+    xp = F.pad(x, (r * d, r * d, r * d, r * d), mode=mode)
     out = torch.zeros_like(x)
     for i in range(k):
         for j in range(k):
             w = weights[:, :, i * k + j] if per_channel else weights[:, i * k + j : i * k + j + 1]
-            out = out + w * xp[:, :, i : i + H, j : j + W]
+            out = out + w * xp[:, :, i * d : i * d + H, j * d : j * d + W]
     return out
 
 
-def _apply_kernels_unfold(x: Tensor, weights: Tensor, *, padding: str = "replicate") -> Tensor:
+def _apply_kernels_unfold(x: Tensor, weights: Tensor, *, padding: str = "replicate", dilation: int = 1) -> Tensor:
     """Reference implementation of :func:`apply_kernels` with ``F.unfold`` (memory hungry; tests only)."""
     per_channel = weights.ndim == 5
     k = _kernel_size(weights, 2 if per_channel else 1)
     B, C, H, W = x.shape
-    r = k // 2
+    r = k // 2 * dilation
     mode = "constant" if padding == "zeros" else padding
-    cols = F.unfold(F.pad(x, (r, r, r, r), mode=mode), k).view(B, C, k * k, H, W)
+    cols = F.unfold(F.pad(x, (r, r, r, r), mode=mode), k, dilation=dilation).view(B, C, k * k, H, W)
     w = weights if per_channel else weights[:, None]
     return (cols * w).sum(2)
 

@@ -13,15 +13,34 @@ per channel with ``kernel_per_channel``) and two 3-channel residual images. The 
 :math:`g_l, g_r` are per-channel view gains (3 numbers each; Eq. 2's 1/2, initialised from the training
 data's view/sharp brightness ratio) so that a per-view scale, which an additive residual represents badly,
 costs nothing to learn.
+
+**Multi-scale kernels** (``ModelConfig.multiscale_levels = n > 0``; off by default, which is the paper's
+model and loads every existing checkpoint unchanged). A K x K kernel reaches only K // 2 px (2 px for K = 5),
+so a blur disc of 10 px must be faked by the residuals. With n levels the network also predicts, per pixel,
+a kernel :math:`W^{(s)}` and a blend weight :math:`a_s` for each scale ``s = 1..n`` with dilation
+:math:`d_s = 2^s`. Kernel ``s`` is applied with its taps ``d_s`` px apart to the sharp image pre-filtered by
+a centred box of width ``d_s`` (:func:`box_prefilter`), so its K x K taps tile a ``K d_s``-px square without
+gaps (a piecewise-constant kernel of reach about ``(K // 2) d_s + d_s / 2`` px: 10 px at K = 5, d = 4):
+
+.. math::
+    B_l = W_l \circledast I_s + \sum_s a_s \left(W^{(s)}_l \circledast_{d_s} P_{d_s} I_s - W_l \circledast I_s\right),
+    \qquad a_s = \tanh(z_s)
+
+and the same with every kernel mirrored for the right view (the blend weights are shared: mirroring
+does not change them). The blend is affine (its weights sum to 1), so flat regions keep their brightness.
+With :math:`z_s = 0` the output is exactly the single-scale model's; :func:`extend_multiscale` uses that to
+turn a trained single-scale network into a multi-scale one with the same output, to be fine-tuned.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from dp5k_common.errors import BadInputError
 
 from .kernels import apply_kernels, flip_lr
 
@@ -44,6 +63,9 @@ class ModelConfig:
     """Dropout probability at the bottleneck."""
     coc_scale_px: float = 10.0
     """The CoC input channel is ``coc_px / coc_scale_px``."""
+    multiscale_levels: int = 0
+    """Extra kernel scales at dilations 2, 4, ..., 2**n px blended per pixel (0 = off: the paper's model).
+    See the module docstring; the reach of the kernels grows from K // 2 to about (K // 2 + 1/2) 2**n px."""
     tile_px: int = 512
     """Inference tile side (bounds memory at full resolution); 0 disables tiling."""
     tile_margin_px: int = 96
@@ -78,6 +100,8 @@ class UNetKPN(nn.Module):
         ``(weights, res_l, res_r)``: weights (B, K*K, H, W) or (B, 3, K*K, H, W), residuals (B, 3, H, W).
         ``forward(sharp, inputs)`` with sharp (B, 3, H, W) and inputs (B, 5, H, W) of any size returns the
         two views ``(left, right)``, each (B, 3, H, W) (everything inside ``forward``, so DDP sees it all).
+        With ``multiscale_levels = n > 0``, ``predict_scales(x)`` returns the n extra scales' kernels (each
+        shaped like ``weights``) and the blend weights (B, n, H, W) in (-1, 1) (see the module docstring).
     """
 
     in_channels = 5
@@ -101,13 +125,37 @@ class UNetKPN(nn.Module):
         with torch.no_grad():
             self.head.bias.copy_(bias)
         self.view_gain = nn.Parameter(torch.full((2, 3), 0.5))
+        self.n_scales = int(cfg.multiscale_levels)
+        if self.n_scales < 0:
+            raise BadInputError(f"multiscale_levels must be >= 0, got {cfg.multiscale_levels}", where="ModelConfig")
+        self.scale_head: nn.Conv2d | None = None
+        if self.n_scales:
+            # Per extra scale: n_kernel kernel logits, then one blend logit per scale at the end.
+            self.scale_head = nn.Conv2d(ch[0], self.n_scales * (self.n_kernel + 1), 1)
+            nn.init.zeros_(self.scale_head.weight)
+            sb = torch.zeros(self.n_scales * (self.n_kernel + 1))
+            sb[: self.n_scales * self.n_kernel].view(-1, k2)[:, k2 // 2] = 4.0
+            with torch.no_grad():
+                self.scale_head.bias.copy_(sb)  # blend logits 0: exactly the single-scale output
 
     @property
     def multiple(self) -> int:
         return 2**self.cfg.levels
 
-    def predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The per-pixel left kernels (softmax) and the two residual images (see class docstring)."""
+    @property
+    def dilations(self) -> tuple[int, ...]:
+        """Tap spacing in px of each extra scale: (2, 4, ..., 2**n); empty when multi-scale is off."""
+        return tuple(2**s for s in range(1, self.n_scales + 1))
+
+    @property
+    def reach_px(self) -> int:
+        """How far (px) the kernels read from a pixel: K // 2, or (K // 2) d + d // 2 at the largest dilation d."""
+        r = self.cfg.kernel_size // 2
+        d = max(self.dilations, default=1)
+        return r * d + (d // 2 if d > 1 else 0)
+
+    def _trunk(self, x: Tensor) -> Tensor:
+        """U-Net features at full resolution, (B, base_channels, H, W)."""
         skips = []
         h = x
         for i, block in enumerate(self.enc):
@@ -118,15 +166,53 @@ class UNetKPN(nn.Module):
             skip = skips.pop()
             h = F.interpolate(h, size=skip.shape[-2:], mode="bilinear", align_corners=False)
             h = block(torch.cat([h, skip], dim=1))
-        out = self.head(h)
-        B, _, H, W = out.shape
-        k2 = self.cfg.kernel_size**2
-        logits = out[:, : self.n_kernel]
+        return h
+
+    def _kernels(self, logits: Tensor) -> Tensor:
+        """Softmax kernels from (B, n_kernel, H, W) logits: (B, K*K, H, W) or (B, 3, K*K, H, W)."""
+        B, _, H, W = logits.shape
         if self.cfg.kernel_per_channel:
-            weights = torch.softmax(logits.view(B, 3, k2, H, W), dim=2)
-        else:
-            weights = torch.softmax(logits, dim=1)
+            return torch.softmax(logits.view(B, 3, self.cfg.kernel_size**2, H, W), dim=2)
+        return torch.softmax(logits, dim=1)
+
+    def _heads(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        out = self.head(h)
+        weights = self._kernels(out[:, : self.n_kernel])
         return weights, out[:, self.n_kernel : self.n_kernel + 3], out[:, self.n_kernel + 3 :]
+
+    def _scale_heads(self, h: Tensor) -> tuple[list[Tensor], Tensor]:
+        """Per extra scale its kernels (as :meth:`_kernels`), and the blend weights (B, n_scales, H, W) in (-1, 1)."""
+        if self.scale_head is None:
+            raise BadInputError("multi-scale kernels are off (ModelConfig.multiscale_levels = 0)", where="UNetKPN")
+        out = self.scale_head(h)
+        nk = self.n_kernel
+        kernels = [self._kernels(out[:, s * nk : (s + 1) * nk]) for s in range(self.n_scales)]
+        return kernels, torch.tanh(out[:, self.n_scales * nk :])
+
+    def predict(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The per-pixel left kernels (softmax) and the two residual images (see class docstring)."""
+        return self._heads(self._trunk(x))
+
+    def predict_scales(self, x: Tensor) -> tuple[list[Tensor], Tensor]:
+        """The extra scales' left kernels (one tensor per scale, shaped like ``predict``'s weights) and blend
+        weights (B, n_scales, H, W); requires ``multiscale_levels > 0``."""
+        return self._scale_heads(self._trunk(x))
+
+    @torch.no_grad()
+    def init_scales_from_base(self) -> None:
+        """Make every extra scale's kernel head a copy of the base kernel head and zero the blend head.
+
+        Afterwards the network's output equals the single-scale output exactly (blend weights are
+        ``tanh(0) = 0``), and each extra scale starts as the learned kernel stretched by its dilation.
+        """
+        if self.scale_head is None:
+            return
+        nk = self.n_kernel
+        for s in range(self.n_scales):
+            self.scale_head.weight[s * nk : (s + 1) * nk] = self.head.weight[:nk]
+            self.scale_head.bias[s * nk : (s + 1) * nk] = self.head.bias[:nk]
+        self.scale_head.weight[self.n_scales * nk :] = 0.0
+        self.scale_head.bias[self.n_scales * nk :] = 0.0
 
     def forward(self, sharp: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
         """Both DP views from the sharp image and the network input (pads to a multiple of ``2 ** levels``)."""
@@ -134,13 +220,86 @@ class UNetKPN(nn.Module):
         m = self.multiple
         ph, pw = (-H) % m, (-W) % m
         x = F.pad(inputs, (0, pw, 0, ph), mode="replicate") if (ph or pw) else inputs
-        weights, res_l, res_r = self.predict(x)
+        h = self._trunk(x)
+        weights, res_l, res_r = self._heads(h)
         weights = weights[..., :H, :W]
+        blur_l = apply_kernels(sharp, weights)
+        blur_r = apply_kernels(sharp, flip_lr(weights))
+        if self.scale_head is not None:
+            kernels, blend = self._scale_heads(h)
+            base_l, base_r = blur_l, blur_r
+            for s, d in enumerate(self.dilations):
+                ws = kernels[s][..., :H, :W]
+                a = blend[:, s : s + 1, :H, :W]
+                pre = box_prefilter(sharp, d)
+                blur_l = blur_l + a * (apply_kernels(pre, ws, dilation=d) - base_l)
+                blur_r = blur_r + a * (apply_kernels(pre, flip_lr(ws), dilation=d) - base_r)
         gain_l = self.view_gain[0].view(1, 3, 1, 1)
         gain_r = self.view_gain[1].view(1, 3, 1, 1)
-        left = gain_l * apply_kernels(sharp, weights) + res_l[..., :H, :W]
-        right = gain_r * apply_kernels(sharp, flip_lr(weights)) + res_r[..., :H, :W]
+        left = gain_l * blur_l + res_l[..., :H, :W]
+        right = gain_r * blur_r + res_r[..., :H, :W]
         return left, right
+
+
+def box_prefilter(x: Tensor, d: int) -> Tensor:
+    """Centred separable box of width ``d`` px (replicate padding), the pre-filter of a dilation-``d`` kernel.
+
+    For even ``d`` the 1-D filter is ``[1/2, 1, ..., 1, 1/2] / d`` (``d + 1`` taps; a width-``d`` box convolved
+    with a 2-tap average, so it stays centred); for odd ``d`` it is ``d`` taps of ``1 / d``. Either way its
+    copies shifted by multiples of ``d`` sum to 1, so the taps of a dilated kernel applied after it tile
+    the plane without gaps or overlaps.
+
+    Args:
+        x: (B, C, H, W) image.
+        d: width in px (>= 1; 1 returns ``x``).
+
+    Returns:
+        (B, C, H, W).
+
+    Example:
+        >>> y = box_prefilter(torch.ones(1, 1, 6, 6), 4)
+        >>> bool(torch.allclose(y, torch.ones_like(y)))
+        True
+    """
+    if d <= 1:
+        return x
+    if d % 2 == 0:
+        taps = torch.ones(d + 1, dtype=x.dtype, device=x.device)
+        taps[0] = taps[-1] = 0.5
+    else:
+        taps = torch.ones(d, dtype=x.dtype, device=x.device)
+    taps = taps / d
+    n, r, C = taps.numel(), taps.numel() // 2, x.shape[1]
+    xp = F.pad(x, (r, r, r, r), mode="replicate")
+    xp = F.conv2d(xp, taps.view(1, 1, 1, n).expand(C, 1, 1, n), groups=C)
+    return F.conv2d(xp, taps.view(1, 1, n, 1).expand(C, 1, n, 1), groups=C)
+
+
+def extend_multiscale(net: UNetKPN, levels: int = 2) -> UNetKPN:
+    """A multi-scale copy of a trained single-scale network whose output is exactly the original's.
+
+    Every existing weight is copied; the new scale head starts as copies of the base kernel head with zero
+    blend weights (:meth:`UNetKPN.init_scales_from_base`), so fine-tuning starts from the trained model.
+
+    Args:
+        net: a network with ``multiscale_levels == 0``.
+        levels: extra scales (dilations 2, 4, ..., 2**levels px).
+
+    Returns:
+        A new :class:`UNetKPN` on ``net``'s device and dtype, in ``net``'s train/eval mode.
+    """
+    if net.cfg.multiscale_levels:
+        raise BadInputError("the network is already multi-scale", where="extend_multiscale")
+    if levels < 1:
+        raise BadInputError(f"levels must be >= 1, got {levels}", where="extend_multiscale")
+    p = next(net.parameters())
+    ext = UNetKPN(replace(net.cfg, multiscale_levels=int(levels))).to(device=p.device, dtype=p.dtype)
+    missing, unexpected = ext.load_state_dict(net.state_dict(), strict=False)
+    if unexpected or any(not k.startswith("scale_head.") for k in missing):
+        raise BadInputError(f"state dicts do not match: missing {missing}, unexpected {unexpected}", where="extend_multiscale")
+    ext.init_scales_from_base()
+    ext.train(net.training)
+    return ext
 
 
 def normalize_depth(depth_mm: Tensor, valid: Tensor) -> Tensor:

@@ -197,7 +197,7 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
     net: torch.nn.Module = sim.net
     if info.enabled:
         net = DistributedDataParallel(sim.net, device_ids=[device.index] if device.type == "cuda" else None)
-    border = cfg.model.kernel_size // 2
+    border = sim.net.reach_px  # K // 2, more with multi-scale kernels
     use_amp = cfg.optim.amp and device.type == "cuda"
     bar = progress(total=cfg.optim.epochs * steps_per_epoch, initial=step, desc="train", unit="step") if info.is_main else None
     try:
