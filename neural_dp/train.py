@@ -39,6 +39,7 @@ from .config import TrainConfig, from_dict
 from .data import CropSpec, DPPairDataset, collate_dp
 from .losses import dp_loss
 from .metrics import view_metrics
+from .model import ModelConfig
 from .simulators.neural import NeuralDPSimulator, model_inputs
 
 logger = logging.getLogger(__name__)
@@ -175,6 +176,8 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
     if resume and last_path.is_file():
         state = load_checkpoint(last_path, map_location=device)
         saved_model = state.get("model_config")
+        if isinstance(saved_model, dict):  # keys added to ModelConfig since (at their defaults) do not block a resume
+            saved_model = {**asdict(ModelConfig()), **saved_model}
         if saved_model != asdict(cfg.model):
             raise BadInputError(
                 "the checkpoint's model config differs from this run's; use another --out or the same config",

@@ -99,3 +99,21 @@ def test_multiscale_kernel_moves_content_beyond_5x5_reach_and_right_view_mirrors
     cx_r = float((right[0, 0].sum(0) * cols).sum() / right[0, 0].sum())
     assert abs(cx_l - 28.0) < 1e-3 and abs(cx_r - 12.0) < 1e-3
     torch.testing.assert_close(left.sum(), sharp.sum())  # the affine blend keeps the energy
+
+
+def test_a_run_saved_before_the_option_existed_still_resumes(tmp_path) -> None:
+    from neural_dp.config import load_config
+    from neural_dp.train import train
+    from tests.helpers.tiny_dataset import make_tiny_dataset
+
+    ds = tmp_path / "ds"
+    make_tiny_dataset(ds, scenes=3, W=48, H=32)
+    tiny = ["model.base_channels=4", "model.levels=2", "data.crop_px=32", "data.batch_size=2",
+            "data.samples_per_epoch=2", "device=cpu"]
+    train(ds, tmp_path / "run", load_config(None, tiny + ["optim.epochs=1"]))
+    state = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    del state["model_config"]["multiscale_levels"]  # as written before multiscale_levels existed
+    torch.save(state, tmp_path / "run" / "last.pt")
+    assert train(ds, tmp_path / "run", load_config(None, tiny + ["optim.epochs=2"])).epochs_done == 2
+    with pytest.raises(BadInputError):  # a real config change is still refused
+        train(ds, tmp_path / "run", load_config(None, tiny + ["optim.epochs=3", "model.multiscale_levels=1"]))
