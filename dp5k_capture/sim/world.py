@@ -160,20 +160,53 @@ class StudioOptics:
         self.focus_m: dict[int, float] = {}
 
     def _focus_point_px(self, camera: int) -> tuple[int, int]:
-        """Where body ``camera`` focuses: the scene's focus target projected into it, or, when something
-        nearer hides the target in this view, the nearest pixel that sees the target's depth (within 2 %),
-        so both bodies focus on the same surface as an operator would place their AF points."""
-        x, y = self.studio.focus_point_px(camera)
+        """Where body ``camera`` focuses: on the scene's focus target, as an operator places the AF point.
+
+        The target's surface is the primitive whose surface the ray to the target meets at the target's depth
+        (within 2 %). The AF point must lie where the structured light can measure the focus distance (Eq. 5
+        averages depth over DP5K's 30 x 20 window at the 1680-wide output, here scaled to this raw size): the
+        window, plus a 2 px margin (processing loses a 1-3 px rim at depth edges), all on the target's surface
+        and lit by the rig's projector. The target projected into the view is kept when it qualifies;
+        otherwise (the target hidden by something nearer, in a nearer object's projector shadow, or only a
+        sliver of it showing at an occluding edge) the point moves to the nearest pixel that does, else on
+        any surface at the target's depth (the same focus distance), then to the nearest pixel whose window
+        is at least half lit target (or lit at its depth), then the nearest lit pixel of either, last the
+        nearest pixel at that depth. Both bodies thus focus on the same surface, or at the same distance."""
+        from .studio.geometry import cast
+
+        x, y = (int(v) for v in self.studio.focus_point_px(camera))
         cam = self.srig.cameras[camera]
-        z_target = float((cam.R @ np.asarray(self.studio.scene.focus_target_m, dtype=np.float64) + cam.t)[2])
-        if abs(self.studio.focus_distance_m(camera, (x, y)) - z_target) <= 0.03 * z_target:
-            return int(x), int(y)
-        depth = np.asarray(self.studio.ground_truth(camera)["depth_m"], dtype=np.float64)
-        ys, xs = np.nonzero(np.abs(depth - z_target) <= 0.02 * z_target)
-        if xs.size == 0:
-            return int(x), int(y)
-        j = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
-        return int(xs[j]), int(ys[j])
+        target = np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)
+        z_target = float((cam.R @ target + cam.t)[2])
+        geo = self.studio.geometry(camera)
+        depth = np.asarray(geo.depth_m, dtype=np.float64)
+        d = target - cam.center_m
+        d = (d / np.linalg.norm(d))[None]
+        zc = float((cam.R @ d[0])[2])
+        prims = list(self.studio.scene.prims)
+        z_hit = np.array([float(cast([p], cam.center_m, d)[0][0]) * zc for p in prims])
+        k = int(np.argmin(np.abs(z_hit - z_target)))
+        surface = (geo.prim == k) if abs(z_hit[k] - z_target) <= 0.02 * z_target else np.zeros(depth.shape, bool)
+        lit = np.isfinite(np.asarray(geo.proj_xy)[..., 0])
+        with np.errstate(invalid="ignore"):
+            at_depth = np.abs(depth - z_target) <= 0.02 * z_target
+        win = tuple(2 * max(3, int(round(n * cam.width / 2 / 1680))) for n in (30, 20))  # raw px (half-size output)
+        on = [surface & lit, at_depth & lit]
+
+        def inside(m: NDArray[np.bool_], size: tuple[int, int], frac: float) -> NDArray[np.bool_]:
+            return m & (cv2.boxFilter(m.astype(np.float32), -1, size, borderType=cv2.BORDER_CONSTANT) >= frac)
+
+        margin = (win[0] + 4, win[1] + 4)  # clear of the surface's edges by 2 px (depth edges lose a rim)
+        clear = [inside(m, margin, 0.999) for m in on]
+        good = [inside(m, win, 0.5) for m in on]
+        if clear[0][y, x]:
+            return x, y
+        for cand in (clear[0], clear[1], good[0], good[1], on[0], on[1], at_depth):
+            ys, xs = np.nonzero(cand)
+            if xs.size:
+                j = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
+                return int(xs[j]), int(ys[j])
+        return x, y
 
     def _index(self, serial: str) -> int:
         return self.serials.index(serial)
