@@ -16,7 +16,7 @@ chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
                       ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one)
-focus_offset          CoC recomputed (Eq. 6) at focus distance F + ``focus_offset_mm``
+focus_offset          CoC recomputed (Eq. 6) at focus distance ``focus_factor`` x F (``focus_offset_mm`` reported)
 psf_profile           radial weight 1 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright centre)
 front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
                       (1 - (rho/R)^2) and diameter x ``front_size_factor``
@@ -164,35 +164,36 @@ class DisparityScale(Component):
 
 
 class FocusOffset(Component):
-    """The true focus distance differs from the recorded one (Eq. 6 at F + offset)."""
+    """The lens focuses at ``F_true = focus_factor x F_recorded`` (Eq. 6 recomputed at F_true).
+
+    A relative error, as an autofocus or focus-by-wire error that scales with the distance; the report also
+    gives it in mm at the mean recorded focus distance of the fit data.
+    """
 
     name = "focus_offset"
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"focus_offset_mm": 0.0}
-        self.fit_names = ["focus_offset_mm"]
-        self.bounds = {"focus_offset_mm": (-1e6, 1e6)}
-        self.steps = {"focus_offset_mm": 10.0}
+        self.params = {"focus_factor": 1.0}
+        self.fit_names = ["focus_factor"]
+        self.bounds = {"focus_factor": (0.5, 2.0)}
+        self.steps = {"focus_factor": 0.01}
         self.mean_focus_mm = float("nan")
 
     def initial_guess(self, model, batch: DPBatch, field: Tensor) -> None:
-        """Scale the finite-difference step and bounds to the focus distances in the data."""
-        F_mm = float(batch.focus_distance_mm.mean())
-        self.mean_focus_mm = F_mm
-        self.steps["focus_offset_mm"] = 0.01 * F_mm
-        self.bounds["focus_offset_mm"] = (-0.5 * F_mm, 0.5 * F_mm)
+        """Remember the mean recorded focus distance (mm) to report the offset in mm."""
+        self.mean_focus_mm = float(batch.focus_distance_mm.mean())
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
-        off = self.params["focus_offset_mm"]
-        if off == 0.0:
+        k = self.params["focus_factor"]
+        if k == 1.0:
             return coc_px
         out = []
         depth = batch.depth_mm[:, 0].detach().cpu().numpy()
         for i in range(depth.shape[0]):
             F_mm = float(batch.focus_distance_mm[i])
             f_mm = float(batch.focal_length_mm[i])
-            F_new = max(F_mm + off, f_mm * 1.05)
+            F_new = max(F_mm * k, f_mm * 1.05)
             c = coc_diameter_px(depth[i], F_new, f_mm, float(batch.f_number[i]), float(batch.pixel_pitch_mm[i]))
             out.append(torch.from_numpy(np.nan_to_num(c, nan=0.0).astype(np.float32)))
         new = torch.stack(out)[:, None].to(coc_px.device)
@@ -201,8 +202,7 @@ class FocusOffset(Component):
 
     def describe(self) -> dict[str, float]:
         p = dict(self.params)
-        if np.isfinite(self.mean_focus_mm):
-            p["focus_factor"] = 1.0 + p["focus_offset_mm"] / self.mean_focus_mm
+        p["focus_offset_mm"] = (p["focus_factor"] - 1.0) * self.mean_focus_mm if np.isfinite(self.mean_focus_mm) else float("nan")
         return p
 
 

@@ -22,10 +22,35 @@ class Sample:
     Attributes:
         batch: the DPBatch (measured ``left``/``right`` set).
         field: (B, 2, H, W) field coordinates (x, y) in [-1, 1] of each full image.
+        score: (B, 1, H, W) bool, the pixels fits and detection statistics count (:func:`predictable_mask`).
     """
 
     batch: DPBatch
     field: Tensor
+    score: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.score is None:
+            self.score = predictable_mask(self.batch)
+
+
+def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17) -> Tensor:
+    r"""(B, 1, H, W) bool: valid pixels whose value the sharp image inside the frame can predict.
+
+    A view pixel collects light from sharp pixels up to half their blur diameter away; near the frame's
+    (or crop's) border part of that light comes from scene content the sharp image does not show, so no
+    model can predict it and its error would only dilute every statistic. Kept: valid pixels whose distance
+    to the border (px) is at least :math:`\max_{w}|C| / 2 + \text{margin}`, with :math:`\max_w |C|` the
+    largest |signed CoC| (output px) in a ``window_px`` neighbourhood (neighbours' blur reaches the pixel too).
+    """
+    B, _, H, W = batch.coc_px.shape
+    a = batch.coc_px.abs() * batch.valid
+    k = window_px | 1
+    reach = torch.nn.functional.max_pool2d(a, k, stride=1, padding=k // 2) / 2 + margin_px
+    ys = torch.arange(H, device=a.device, dtype=a.dtype)
+    xs = torch.arange(W, device=a.device, dtype=a.dtype)
+    dist = torch.minimum(torch.minimum(ys, H - 1 - ys)[:, None], torch.minimum(xs, W - 1 - xs)[None, :])
+    return batch.valid & (dist >= reach)
 
 
 def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:

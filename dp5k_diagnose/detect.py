@@ -10,10 +10,9 @@ parameters (plus the gain, and the rim softness for PSF-shape effects) are fitte
 * statistic: the one-sided one-sample t statistic of :math:`\Delta_i` (H0: mean 0), its p-value;
 * effect size: the relative reduction of the pooled MSE, :math:`\sum_t \Delta_t / \sum_t \mathrm{MSE}_t(\text{base})`.
 
-``noise`` cannot be predicted, so it is tested on the base residual itself: the white-noise variance
-:math:`\hat\sigma^2_t` of each tile (robust, from the residual minus its 3x3 mean) against the tile's
-residual MSE; the effect size is the white fraction of the residual beyond what the noiseless fit leaves
-(``NOISE_NULL_FRACTION``), tested with a one-sided t test.
+``noise`` cannot be predicted, so it is measured directly: the white-noise variance of the views in flat
+regions of the scene, from the high-pass of ``L - R`` (:func:`flat_lr_noise`), against a nominal sensor's
+(``DetectConfig.nominal_*``); the effect size is the excess variance ratio (:func:`test_noise`).
 
 An effect is *detected* when ``p < alpha`` and its effect size exceeds ``min_effect``; the cause is the
 detected effect of largest effect size, else ``none``.
@@ -41,19 +40,16 @@ from .data import Sample
 
 log = logging.getLogger(__name__)
 
-NOISE_NULL_FRACTION = 0.35
-"""White fraction of a residual that a noiseless model mismatch can show (high-pass leakage at edges)."""
-
 EXPLAIN = {
     "lr_gain_imbalance": "the left and right views differ in brightness: L/R ratio {lr_ratio_center:.3f} at the centre, {lr_ratio_min:.3f}..{lr_ratio_max:.3f} across the field",
     "field_varying_psf": "the blur changes across the field: CoC grows by {coc_growth_at_corner:+.1%} at the corner and the split leaks {edge_leak:.3f} x |x| toward the edges",
     "chromatic_defocus": "the colour channels focus differently: focal length shift red {focal_shift_r_mm:+.4f} mm, blue {focal_shift_b_mm:+.4f} mm versus green",
     "disparity_scale": "the L/R disparity is {disparity_scale:.3f} x the ideal half-aperture disparity (crosstalk {crosstalk:.3f})",
-    "focus_offset": "the lens focuses {focus_offset_mm:+.1f} mm from the recorded focus distance",
+    "focus_offset": "the lens focuses at {focus_factor:.3f} x the recorded focus distance ({focus_offset_mm:+.0f} mm at the mean recorded distance)",
     "psf_profile": "the blur disc is not uniform: radial weight 1 {rim_gain:+.2f} (rho/R)^4",
     "front_back_asymmetry": "blur in front of focus differs from blur behind it: back rim gain {back_rim_gain:+.2f}, front centre gain {front_center_gain:+.2f}, front size x{front_size_factor:.3f}",
     "misregistration": "the views are shifted against the sharp image: left ({left_dx_px:+.2f}, {left_dy_px:+.2f}) px, right ({right_dx_px:+.2f}, {right_dy_px:+.2f}) px",
-    "noise": "the views carry more white noise than a nominal sensor: shot variance {shot_var:.2e} per unit intensity, read sigma {read_sigma:.2e} ({excess_fraction:.0%} of the residual is excess noise)",
+    "noise": "the views carry {variance_ratio:.1f} x the white-noise variance of a nominal sensor in flat regions: shot variance {shot_var:.2e} per unit intensity, read sigma {read_sigma:.2e} ({excess_fraction:.0%} of the base model's residual is excess noise)",
 }
 
 
@@ -67,7 +63,10 @@ class DetectConfig:
         min_effect: smallest relative MSE reduction (or excess white fraction) that counts as an effect.
         lm_iters: Levenberg-Marquardt iterations per effect.
         refine_top: effects fitted beyond the one-iteration screening.
-        noise_min_effect: smallest excess white-noise fraction of the residual that counts as ``noise``.
+        noise_min_effect: smallest excess noise variance, as a multiple of the nominal variance, that counts
+            as ``noise`` (1.0: twice the nominal variance).
+        noise_flat_window_px, noise_flat_quantile: the window over which sharp must be flat, and the
+            flattest fraction of valid pixels used to measure noise.
         nominal_shot_var, nominal_read_sigma: the noise a healthy sensor is expected to show (linear
             units: a ~50 000 e- full well scaled to [0, 1] and a read noise of 1e-3); only noise beyond
             it counts as the ``noise`` effect.
@@ -78,7 +77,9 @@ class DetectConfig:
     min_effect: float = 0.15
     lm_iters: int = 3
     refine_top: int = 2
-    noise_min_effect: float = 0.25
+    noise_min_effect: float = 1.0
+    noise_flat_window_px: int = 13
+    noise_flat_quantile: float = 0.10
     nominal_shot_var: float = 2.0e-5
     nominal_read_sigma: float = 1.0e-3
 
@@ -93,6 +94,14 @@ class Finding:
     params: dict[str, float]
     explanation: str
     model: BaseModel | None = field(default=None, repr=False)
+
+    @property
+    def rank_score(self) -> float:
+        """The share of the base model's residual MSE this effect explains (noise: the excess noise's share;
+        its ``effect_size`` is a variance ratio on another scale)."""
+        if self.effect == "noise":
+            return float(self.params.get("excess_fraction", 0.0))
+        return float(self.effect_size)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -134,11 +143,12 @@ def residual(model: BaseModel, s: Sample) -> Tensor:
 
 
 def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-tile squared-error sums, valid counts and pair ids over all samples (tiles less than half valid dropped)."""
+    """Per-tile squared-error sums, counts of scored pixels (``Sample.score``) and pair ids over all samples
+    (tiles less than half scored dropped)."""
     sums, counts, owners = [], [], []
     for s in samples:
         e = residual(model, s)
-        su, co = tile_sums(e**2, s.batch.valid.float(), tile)
+        su, co = tile_sums(e**2, s.score.float(), tile)
         sums.append(su)
         counts.append(co)
         per = su.numel() // len(s.batch.pair_ids)
@@ -177,10 +187,10 @@ def fit_base(fit: list[Sample], iters: int = 4) -> BaseModel:
     """The base model with its two parameters fitted on the fit samples."""
     base = BaseModel()
     # a first guess of the gain: ratio of means
-    num = sum(float((s.batch.left + s.batch.right).mul(s.batch.valid).sum()) for s in fit)
-    den = sum(float(s.batch.sharp.mul(s.batch.valid).sum()) for s in fit)
+    num = sum(float((s.batch.left + s.batch.right).mul(s.score).sum()) for s in fit)
+    den = sum(float(s.batch.sharp.mul(s.score).sum()) for s in fit)
     base.params["gain"] = num / max(den, 1e-12)
-    fit_parameters(base, [(base, "rim_softness_px"), (base, "gain")], [s.batch for s in fit], [s.field for s in fit], iters=iters)
+    fit_parameters(base, [(base, "rim_softness_px"), (base, "gain")], [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
     return base
 
 
@@ -194,62 +204,93 @@ def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4) ->
     model = copy_base(base).with_component(comp)
     comp.initial_guess(model, fit[0].batch, fit[0].field)
     targets: list[tuple[object, str]] = [(comp, n) for n in comp.fit_names] + [(model, "gain")]
-    if comp.changes_psf:
-        targets.append((model, "rim_softness_px"))
-    cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], iters=iters)
+    if comp.changes_psf or not comp.post_only:
+        targets.append((model, "rim_softness_px"))  # blur changes trade off against the rim softness
+    cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
     return model, targets, cost
 
 
-def white_noise_tiles(base: BaseModel, samples: list[Sample], tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per tile: robust white-noise variance of the residual, residual MSE, mean predicted intensity.
+def flat_lr_noise(samples: list[Sample], cfg: DetectConfig) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    r"""Per pair: the white-noise variance samples of the views in flat regions, and their intensities.
 
-    The residual's high-pass ``e - mean3x3(e)`` has variance ``(8/9) sigma^2`` for white noise; its
-    median square over a tile divided by ``0.4549 * 8/9`` (median of chi^2_1) estimates ``sigma^2``
-    robustly (model-mismatch edges are outliers).
+    Model-free: where the sharp image is flat over a ``noise_flat_window_px`` window (the flattest
+    ``noise_flat_quantile`` of valid pixels by local high-pass energy of sharp), both views are smooth, and
+    their difference :math:`d = L - R` is smooth as well (blur, shading, gains and shifts of a flat patch
+    cancel or vary slowly). Its high-pass :math:`h = d - \mathrm{mean}_{3 \times 3}(d)` then holds only the two
+    views' independent noise: :math:`E[h^2] = (8/9) (\sigma_L^2 + \sigma_R^2) \approx (16/9) \sigma^2(I)` with
+    :math:`I = (L + R) / 2` (linear units of the views). Content common to both views (ringing of a
+    misregistered view, texture leaking into the window) cancels in :math:`d`.
+
+    Returns:
+        (v, I): per pair, 1-D arrays of :math:`h^2 / (16/9)` (an unbiased per-pixel estimate of
+        :math:`\sigma^2`, chi^2_1 distributed) and :math:`I`, over flat valid pixels and channels.
     """
-    var, mse, inten = [], [], []
+    k = cfg.noise_flat_window_px | 1
+    var_by_pair: dict[str, list[Tensor]] = {}
+    int_by_pair: dict[str, list[Tensor]] = {}
     for s in samples:
-        l, r = base.render(s.batch, s.field)
-        pred = torch.cat([l, r], 1)
-        e = pred - torch.cat([s.batch.left, s.batch.right], 1)
-        hp = e - F.avg_pool2d(F.pad(e, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
-        m = s.batch.valid.float()
-        t = min(tile, e.shape[-2], e.shape[-1])
-        B, C, H, W = e.shape
-        nty, ntx = H // t, W // t
-        hp2 = (hp[..., : nty * t, : ntx * t] ** 2)
-        mm = m[..., : nty * t, : ntx * t]
-        hp2 = torch.where(mm.bool().expand_as(hp2), hp2, torch.nan)
-        blocks = hp2.reshape(B, C, nty, t, ntx, t).permute(0, 2, 4, 1, 3, 5).reshape(B * nty * ntx, -1)
-        med = torch.nanmedian(blocks, dim=1).values / (0.4549 * 8.0 / 9.0)
-        e2 = (e[..., : nty * t, : ntx * t] ** 2 * mm).reshape(B, C, nty, t, ntx, t).permute(0, 2, 4, 1, 3, 5).reshape(B * nty * ntx, -1)
-        cnt = mm.expand(B, C, -1, -1).reshape(B, C, nty, t, ntx, t).permute(0, 2, 4, 1, 3, 5).reshape(B * nty * ntx, -1).sum(1)
-        pi = (pred[..., : nty * t, : ntx * t] * mm).reshape(B, C, nty, t, ntx, t).permute(0, 2, 4, 1, 3, 5).reshape(B * nty * ntx, -1).sum(1)
-        ok = cnt >= 0.5 * C * t * t
-        var.append(med[ok])
-        mse.append((e2.sum(1) / cnt.clamp(min=1))[ok])
-        inten.append((pi / cnt.clamp(min=1))[ok])
-    return (torch.cat(var).double().numpy(), torch.cat(mse).double().numpy(), torch.cat(inten).double().numpy())
+        b = s.batch
+        energy = (_high_pass(b.sharp) ** 2).sum(1, keepdim=True)
+        energy = F.avg_pool2d(F.pad(energy, (k // 2,) * 4, mode="replicate"), k, stride=1)
+        v = _high_pass(b.left - b.right) ** 2 / (16.0 / 9.0)
+        inten = (b.left + b.right) / 2
+        valid = b.valid[:, 0].clone()
+        valid[:, :1] = valid[:, -1:] = False  # the 3x3 mean needs neighbours
+        valid[:, :, :1] = valid[:, :, -1:] = False
+        for i, pid in enumerate(b.pair_ids):
+            vi = valid[i]
+            if int(vi.sum()) < 16:
+                continue
+            m = vi & (energy[i, 0] <= torch.quantile(energy[i, 0][vi], cfg.noise_flat_quantile))
+            var_by_pair.setdefault(pid, []).append(v[i][:, m].reshape(-1))
+            int_by_pair.setdefault(pid, []).append(inten[i][:, m].reshape(-1))
+    ids = sorted(var_by_pair)
+    return ([torch.cat(var_by_pair[p]).double().numpy() for p in ids], [torch.cat(int_by_pair[p]).double().numpy() for p in ids])
+
+
+def _high_pass(x: Tensor) -> Tensor:
+    """``x - mean3x3(x)`` (replicated border), (B, C, H, W)."""
+    return x - F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+
+
+MEDIAN_CHI2_1 = 0.4549364
+"""Median of the chi^2 distribution with one degree of freedom (median of z^2 for z ~ N(0, 1))."""
 
 
 def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig) -> Finding:
-    r"""The noise finding: white noise in the base residual beyond a nominal sensor's.
+    r"""The noise finding: white noise in the views beyond a nominal sensor's.
 
-    Per tile t: :math:`x_t = (\hat\sigma^2_t - \sigma^2_{nom}(I_t)) / \mathrm{MSE}_t`, the fraction of the
-    residual that is excess white noise; one-sided t test of mean > 0; effect size = pooled fraction.
-    The noise model ``var = shot_var I + read_sigma^2`` is a least-squares line through the tiles.
+    From :func:`flat_lr_noise` (fit and detection samples: nothing is fitted to them), the per-pixel ratio
+    :math:`z = \hat\sigma^2 / \sigma^2_{nom}(I)` with :math:`\sigma^2_{nom}(I) = s_{nom} I + r_{nom}^2`;
+    per pair the robust variance ratio :math:`\rho_i = \mathrm{median}(z) / 0.4549` (median of chi^2_1).
+    Statistic: one-sided t of :math:`\ln \rho_i` (H1: more noise than nominal); effect size: the pooled
+    excess variance :math:`\rho - 1` (0 for a nominal sensor; the ``noise`` effect at studio strength 1 is
+    about 3). The noise model ``var = shot_var I + read_sigma^2`` is a least-squares line through the
+    medians of 8 intensity bins. Also reported: ``excess_fraction``, the share of the base model's residual
+    MSE that the excess noise accounts for (used to rank noise against effects measured in MSE).
     """
-    var, mse, inten = white_noise_tiles(base, det, cfg.tile_px)
-    nominal = cfg.nominal_shot_var * np.maximum(inten, 0) + cfg.nominal_read_sigma**2
-    x = np.clip((var - nominal) / np.maximum(mse, 1e-20), -1.5, 1.5)
-    t, p = one_sided_t(x)
-    effect = float(np.sum(var - nominal) / max(np.sum(mse), 1e-20))
-    A = np.stack([inten, np.ones_like(inten)], 1)
-    coef, *_ = np.linalg.lstsq(A, var, rcond=None)
+    var, inten = flat_lr_noise(fit + det, cfg)
+    if not var:
+        return Finding("noise", 0.0, 1.0, 0.0, False, {}, "no flat valid pixels to measure noise", None)
+    nominal = [cfg.nominal_shot_var * np.maximum(i, 0) + cfg.nominal_read_sigma**2 for i in inten]
+    ratios = np.array([np.median(v / n) / MEDIAN_CHI2_1 for v, n in zip(var, nominal) if v.size >= 32])
+    t, p = one_sided_t(np.log(np.maximum(ratios, 1e-12)))
+    v_all, i_all, n_all = np.concatenate(var), np.concatenate(inten), np.concatenate(nominal)
+    rho = float(np.median(v_all / n_all) / MEDIAN_CHI2_1)
+    effect = rho - 1.0
+    edges = np.quantile(i_all, np.linspace(0, 1, 9))
+    which = np.clip(np.searchsorted(edges, i_all, side="right") - 1, 0, 7)
+    rows = [(float(i_all[which == j].mean()), float(np.median(v_all[which == j]) / MEDIAN_CHI2_1)) for j in range(8) if np.any(which == j)]
+    A = np.array([[i, 1.0] for i, _ in rows])
+    coef, *_ = np.linalg.lstsq(A, np.array([v for _, v in rows]), rcond=None)
     model = copy_base(base).with_component(Noise())
     comp = model.components[-1]
     comp.params = {"shot_var": float(max(coef[0], 0.0)), "read_sigma": float(math.sqrt(max(coef[1], 0.0)))}
-    params = {**comp.params, "noise_sigma_mean": float(math.sqrt(max(np.mean(var), 0.0))), "excess_fraction": effect}
+    base_su, base_co, _ = tile_mse(base, det or fit, cfg.tile_px)
+    mse = float(base_su.sum() / max(base_co.sum(), 1.0))
+    excess_var = max(rho - 1.0, 0.0) * float(np.mean(n_all))
+    params = {**comp.params, "variance_ratio": rho, "noise_sigma_mean": float(math.sqrt(max(np.mean(v_all), 0.0))),
+              "excess_fraction": float(min(excess_var / max(mse, 1e-20), 1.0))}
     detected = bool(p < cfg.alpha and effect > cfg.noise_min_effect)
     return Finding("noise", t, p, effect, detected, params, EXPLAIN["noise"].format(**params), model)
 
@@ -268,7 +309,7 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
     order = sorted(fitted, key=lambda n: fitted[n][2])
     for name in order[: cfg.refine_top]:
         model, targets, _ = fitted[name]
-        cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], iters=max(cfg.lm_iters - 1, 1))
+        cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
         fitted[name] = (model, targets, cost)
     findings = []
     for name in effects:
@@ -289,8 +330,71 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
             text = name
         log.info("%s: effect %.4f t %.2f p %.2g params %s", name, effect, t, p, params)
         findings.append(Finding(name, t, p, effect, detected, params, text, model))
-    findings.sort(key=lambda f: (not f.detected, -f.effect_size))
+    findings.sort(key=lambda f: (not f.detected, -f.rank_score))
     return findings
+
+
+@dataclass
+class Discrimination:
+    """Which of two detected effects the data needs, from their unique contributions.
+
+    ``unique[e]`` is the relative reduction of the detection set's MSE (as a share of the base model's) that
+    ``e`` adds on top of the other effect: ``(MSE(other) - MSE(both)) / MSE(base)``, with the one-sided t
+    test of its per-pair log ratio. The effect that adds more is the cause.
+    """
+
+    effects: tuple[str, str]
+    unique: dict[str, float]
+    p_value: dict[str, float]
+    joint_effect_size: float
+    winner: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effects": list(self.effects), "unique_effect_size": {k: _finite(v) for k, v in self.unique.items()},
+                "unique_p_value": {k: _finite(v, 1.0) for k, v in self.p_value.items()},
+                "joint_effect_size": _finite(self.joint_effect_size), "winner": self.winner}
+
+
+def discriminate(findings: list[Finding], base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig) -> Discrimination | None:
+    """Nested comparison of the two leading detected effects (both predictable, i.e. not ``noise``).
+
+    Two effects can mimic each other where the data is weak (an off-axis photodiode leak is a field-linear L/R
+    brightness ratio in focus, like a gain imbalance); what separates them is what each explains that the
+    other cannot. Both components are fitted together (starting from their separate fits) and each one's
+    unique contribution is measured on the detection set. ``findings`` is reordered so the winner leads.
+
+    Returns:
+        None when fewer than two predictable effects are detected.
+    """
+    lead = [f for f in findings if f.detected and f.effect != "noise" and f.model is not None]
+    if len(lead) < 2:
+        return None
+    a, b = lead[0], lead[1]
+    model = copy_base(base)
+    model.params.update(a.model.params)  # start from the leader's fitted gain and rim
+    targets: list[tuple[object, str]] = []
+    for f in (a, b):
+        comp = COMPONENTS[f.effect]()
+        comp.params = dict(f.model.components[-1].params)
+        model = model.with_component(comp)
+        targets += [(comp, n) for n in comp.fit_names]
+    targets.append((model, "gain"))
+    if any(c.changes_psf or not c.post_only for c in model.components):
+        targets.append((model, "rim_softness_px"))
+    fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
+    base_su, _, owners = tile_mse(base, det, cfg.tile_px)
+    su = {f.effect: tile_mse(f.model, det, cfg.tile_px)[0] for f in (a, b)}
+    su_ab = tile_mse(model, det, cfg.tile_px)[0]
+    total = max(float(base_su.sum()), 1e-20)
+    unique, pv = {}, {}
+    for f, other in ((a, b), (b, a)):
+        unique[f.effect] = float((su[other.effect].sum() - su_ab.sum()) / total)
+        pv[f.effect] = one_sided_t(clustered_delta(su[other.effect], su_ab, su_ab, owners))[1]
+    winner = max(unique, key=lambda e: unique[e])
+    log.info("discriminate %s vs %s: unique %s p %s", a.effect, b.effect, unique, pv)
+    if winner != findings[0].effect:
+        findings.sort(key=lambda f: (f.effect != winner, not f.detected, -f.rank_score))
+    return Discrimination((a.effect, b.effect), unique, pv, float((base_su.sum() - su_ab.sum()) / total), winner)
 
 
 def name_cause(findings: list[Finding]) -> str:

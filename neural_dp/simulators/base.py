@@ -386,9 +386,10 @@ class BaseModel(DPSimulator):
         return dict(self.params)
 
 
-def _masked_residual(model: BaseModel, batch: DPBatch, field: Tensor | None, layers: tuple[Tensor, Tensor] | None = None) -> Tensor:
+def _masked_residual(model: BaseModel, batch: DPBatch, field: Tensor | None, layers: tuple[Tensor, Tensor] | None = None,
+                     mask: Tensor | None = None) -> Tensor:
     left, right = model.render(batch, field, layers)
-    m = batch.valid.float()
+    m = (batch.valid if mask is None else mask).float()
     r = torch.cat([(left - batch.left) * m, (right - batch.right) * m], dim=1)
     return r.reshape(-1)
 
@@ -400,6 +401,7 @@ def fit_parameters(
     batches: list[DPBatch],
     fields: list[Tensor] | None = None,
     iters: int = 4,
+    masks: list[Tensor] | None = None,
 ) -> float:
     """Levenberg-Marquardt fit of named scalar parameters on the masked L/R squared error.
 
@@ -410,11 +412,13 @@ def fit_parameters(
         batches: measured batches (left/right set).
         fields: optional per-batch field maps (for crops).
         iters: LM iterations (each costs 1 + len(targets) renders per batch; the gain costs none).
+        masks: optional per-batch (B, 1, H, W) masks of the pixels that count (default: ``batch.valid``).
 
     Returns:
         The final mean squared error.
     """
     fields = fields or [None] * len(batches)
+    masks = masks or [b.valid for b in batches]
     post_only = all(o is model and n == "gain" or getattr(o, "post_only", False) for o, n in targets)
     cache = [model.render_layers_only(b, f) for b, f in zip(batches, fields)] if post_only else [None] * len(batches)
 
@@ -428,7 +432,7 @@ def fit_parameters(
 
     def residual() -> Tensor:
         with torch.no_grad():
-            return torch.cat([_masked_residual(model, b, f, c) for b, f, c in zip(batches, fields, cache)]).double()
+            return torch.cat([_masked_residual(model, b, f, c, m) for b, f, c, m in zip(batches, fields, cache, masks)]).double()
 
     x = get()
     r = residual()
@@ -439,7 +443,7 @@ def fit_parameters(
         for i, (o, n) in enumerate(targets):
             if o is model and n == "gain":
                 # views are linear in the gain: d r / d g = (r + measured) / g
-                meas = torch.cat([torch.cat([b.left * b.valid, b.right * b.valid], 1).reshape(-1) for b in batches]).double()
+                meas = torch.cat([torch.cat([b.left * m, b.right * m], 1).reshape(-1) for b, m in zip(batches, masks)]).double()
                 cols.append((r + meas) / max(model.params["gain"], 1e-6))
                 continue
             h = o.steps.get(n, 1e-2)  # type: ignore[attr-defined]

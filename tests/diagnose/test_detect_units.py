@@ -1,0 +1,103 @@
+"""Unit checks of the detectors' building blocks: the model-free noise measurement, the predictable-pixel mask
+and the nested discrimination of two effects that mimic each other."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from dp5k_diagnose.data import Sample, predictable_mask
+from dp5k_diagnose import detect
+from dp5k_diagnose.detect import DetectConfig, Finding, copy_base, discriminate
+from neural_dp.simulators.base import BaseModel, field_coords
+from tests.diagnose.test_base_model import make_batch
+
+SHOT, READ = 2.0e-5, 1.0e-3
+
+
+def scene(seed: int, n: int = 4, H: int = 64, W: int = 96) -> torch.Tensor:
+    """(n, 3, H, W) flat patches of random level with a band of fine texture (edges everywhere would hide noise)."""
+    g = torch.Generator().manual_seed(seed)
+    img = torch.zeros(n, 3, H, W)
+    for i in range(n):
+        for y0 in range(0, H, 16):
+            for x0 in range(0, W, 24):
+                img[i, :, y0 : y0 + 16, x0 : x0 + 24] = 0.1 + 0.7 * torch.rand(3, 1, 1, generator=g)
+    img[:, :, :, : W // 4] += 0.2 * torch.rand(n, 3, H, W // 4, generator=g)
+    return img.clamp(0, 1)
+
+
+def noisy_views(sharp: torch.Tensor, var_factor: float, common: torch.Tensor | None, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Views = sharp / 2 (+ a pattern common to both) + independent noise of ``var_factor`` x nominal variance."""
+    g = torch.Generator().manual_seed(seed)
+    views = []
+    for _ in range(2):
+        v = sharp / 2 + (0 if common is None else common)
+        sd = torch.sqrt(var_factor * (SHOT * v.clamp(min=0) + READ**2))
+        views.append(v + sd * torch.randn(v.shape, generator=g))
+    return views[0], views[1]
+
+
+def samples(sharp: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> list[Sample]:
+    B, _, H, W = sharp.shape
+    b = dataclasses.replace(make_batch(sharp, torch.zeros(B, 1, H, W), left, right), pair_ids=tuple(f"p{i}" for i in range(B)))
+    return [Sample(b, field_coords(B, H, W))]
+
+
+@pytest.mark.parametrize("factor", [1.0, 4.0])
+def test_noise_measured_against_nominal(factor: float) -> None:
+    sharp = scene(0)
+    s = samples(sharp, *noisy_views(sharp, factor, None, 1))
+    f = detect.test_noise(BaseModel(), s, [], DetectConfig())
+    assert f.params["variance_ratio"] == pytest.approx(factor, rel=0.15)
+    assert f.detected is (factor > 1.5)
+    assert f.params["shot_var"] == pytest.approx(factor * SHOT, rel=0.5)
+
+
+def test_noise_ignores_structure_common_to_both_views() -> None:
+    """Ringing or shifted texture is in both views alike; only independent noise counts (misregistration is not noise)."""
+    sharp = scene(2)
+    ring = 0.01 * torch.sin(torch.arange(sharp.shape[-1]) * 2.7)[None, None, None, :].expand_as(sharp)
+    f = detect.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 1.0, ring, 3)), [], DetectConfig())
+    assert f.params["variance_ratio"] == pytest.approx(1.0, rel=0.15) and not f.detected
+
+
+def test_predictable_mask_drops_pixels_whose_blur_reaches_past_the_border() -> None:
+    H, W = 40, 60
+    coc = torch.zeros(1, 1, H, W)
+    coc[..., :, 30:] = 16.0  # right half: 16 px discs (reach 8 px + margin)
+    b = make_batch(torch.rand(1, 3, H, W), coc)
+    m = predictable_mask(b, margin_px=1.0, window_px=1)[0, 0]
+    assert m[20, 5] and not m[0, 5]  # sharp pixels only lose the 1 px rim
+    assert m[20, 45] and not m[20, W - 5] and not m[4, 45]  # blurred ones lose 9 px at the border
+    b.valid[..., 20, 20] = False
+    assert not predictable_mask(b)[0, 0, 20, 20]
+
+
+def test_discriminate_prefers_the_effect_that_adds_something() -> None:
+    """Two detected gain-imbalance fits: the one with a centre ratio (what the data needs) wins the nested test."""
+    from dp5k_diagnose.components import COMPONENTS
+
+    sharp = scene(4)
+    base = BaseModel(rim_softness_px=0.0)
+    B, _, H, W = sharp.shape
+    fld = field_coords(B, H, W)
+    truth = COMPONENTS["lr_gain_imbalance"]()
+    truth.params.update(a0=0.2, ax=0.1)
+    l, r = base.with_component(truth).render(make_batch(sharp, torch.zeros(B, 1, H, W)), fld)
+    s = samples(sharp, l, r)
+
+    def finding(name: str, **params: float) -> Finding:
+        comp = COMPONENTS[name]()
+        comp.params.update(params)
+        return Finding(name, 5.0, 1e-4, 0.5, True, dict(comp.params), name, copy_base(base).with_component(comp))
+
+    # a stand-in that only has the field slope (misregistration cannot fit brightness): lr_gain must win
+    findings = [finding("misregistration", left_dx_px=0.0), finding("lr_gain_imbalance", a0=0.15, ax=0.08)]
+    d = discriminate(findings, base, s, s, DetectConfig())
+    assert d is not None and d.winner == "lr_gain_imbalance" and findings[0].effect == "lr_gain_imbalance"
+    assert d.unique["lr_gain_imbalance"] > 0.5 > abs(d.unique["misregistration"])
+    assert discriminate(findings[:1], base, s, s, DetectConfig()) is None
