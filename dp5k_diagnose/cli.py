@@ -36,6 +36,11 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         click.echo(f"  {res['findings'][0]['explanation']}")
     click.echo(f"gain on {g['split']}: PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
                f"(95% CI of the gain [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
+    ne = res.get("neural_extension")
+    if ne:
+        gc = ne["gain_vs_control"]
+        click.echo(f"neural extension ({ne['extension'].get('kind', 'multi-scale')}): PSNR gain over an equally fine-tuned control "
+                   f"{gc['psnr_after'] - gc['psnr_before']:+.3f} dB (95% CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}])")
     click.echo(f"report: {out / 'report.md'}")
 
 

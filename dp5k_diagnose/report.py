@@ -146,5 +146,17 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
             for e in a["psfs"]:
                 lines.append(f"| {e['coc_px']:.2f} | {e['zone']} | {e['n_tiles']} | {e['measured_separation_px']:.3f} | {e['model_separation_px']:.3f} |")
             lines += ["", f"![psfs]({figs[f'psfs_{stage}']})", ""]
+    ne = result.get("neural_extension")
+    if ne:
+        from .neural_reach import format_table
+
+        gc = ne["gain_vs_control"]
+        lines += ["## The learned model's reach and its structural extension", "",
+                  f"{ne['extension'].get('kind', 'multi-scale kernels')}: reach {ne['extension'].get('reach_px_before')} -> "
+                  f"{ne['extension'].get('reach_px_after')} px; the extended network starts equal to the checkpoint "
+                  f"(max difference {ne['extension'].get('init_max_abs_diff')}) and is fine-tuned beside an equally fine-tuned control.", "",
+                  f"PSNR gain over the control on `{ne.get('split')}`: {gc['psnr_after'] - gc['psnr_before']:+.3f} dB "
+                  f"(95 % CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}]).", "",
+                  format_table(ne), ""] + [f"![neural reach]({f})" for f in ne.get("figures", [])] + [""]
     with atomic_path(out / "report.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")

@@ -17,7 +17,7 @@ from dp5k_common.errors import BadInputError
 from neural_dp.simulators.base import BaseModel
 
 from .data import Sample, crop_samples, full_samples, load_pairs
-from .detect import DetectConfig, Finding, fit_base, name_cause, test_effects
+from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, name_cause, test_effects
 from .gain import gain_report, pair_metrics
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ class DiagnoseConfig:
         seed: seeds crop positions and the bootstrap.
         detect: the detectors' statistical settings.
         effects: the effects to test (default: the whole vocabulary).
+        neural_steps: fine-tuning steps of the Neural DP extension study (``--model neural:CKPT``).
     """
 
     fit_pairs: int = 4
@@ -46,6 +47,7 @@ class DiagnoseConfig:
     seed: int = 0
     detect: DetectConfig = field(default_factory=DetectConfig)
     effects: tuple[str, ...] = EFFECT_NAMES
+    neural_steps: int = 150
 
 
 @dataclass
@@ -59,6 +61,7 @@ class Diagnosis:
     gain: dict[str, Any]
     timings_s: dict[str, float]
     splits_used: dict[str, list[str]]
+    discrimination: Discrimination | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -71,6 +74,7 @@ class Diagnosis:
             "extended_model": self.extended.describe(),
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
+            "discrimination": self.discrimination.to_json() if self.discrimination else None,
         }
 
 
@@ -105,6 +109,7 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     log.info("base model fitted: %s", base.params)
     t_fit = time.perf_counter()
     findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
+    disc = discriminate(findings, base, fit, det, cfg.detect)
     cause = name_cause(findings)
     extended = findings[0].model if cause != NO_EFFECT and findings[0].model is not None else base
     t_det = time.perf_counter()
@@ -115,7 +120,7 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     gain = gain_report(before, after, gain_split, cfg.n_boot, cfg.seed)
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
-    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits)
+    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, disc)
 
 
 def analyse(predict, samples: list[Sample], with_psfs: bool = True) -> dict[str, Any]:
@@ -140,6 +145,8 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
     named and added); for a peer, its own residuals are analysed and its metrics reported beside the base's.
     """
     cfg = cfg or DiagnoseConfig()
+    if model.startswith("neural:") and not Path(model.split(":", 1)[1]).is_file():
+        raise BadInputError("Neural DP checkpoint not found", where=model.split(":", 1)[1])
     diag = diagnose_base(dataset, cfg)
     result = diag.to_json()
     reader = DatasetReader(dataset)
@@ -157,11 +164,32 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
         result["peer"] = {"name": model, "psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)), "mae": float(np.nanmean(pm.mae)),
                           "note": "effects are named and added on the physical base model; the peer's own errors are in analysis.peer"}
         analysis["peer"] = analyse(lambda s: peer(s.batch), held, with_psfs=False)
+    if model.startswith("neural:"):
+        result["neural_extension"] = extend_neural(dataset, model.split(":", 1)[1], out, cfg)
     if out is not None:
         from .report import write_report
 
         write_report(Path(out), result, analysis)
     return result
+
+
+def extend_neural(dataset: str | Path, checkpoint: str | Path, out: str | Path | None, cfg: DiagnoseConfig) -> dict[str, Any]:
+    """The learned model's structural extension (:func:`dp5k_diagnose.neural_reach.diagnose_neural`): its error
+    per |CoC| bin, multi-scale kernels added (equal output at start), fine-tuned beside an equally fine-tuned
+    control, gains per |CoC| bin. Files go to ``out/neural`` (a temporary folder when ``out`` is None)."""
+    import tempfile
+
+    from .neural_reach import diagnose_neural
+
+    keys = ("extension", "metrics", "gain", "gain_vs_control", "bins_px", "per_bin", "error_growth", "figures", "split", "n_pairs")
+    if out is None:
+        with tempfile.TemporaryDirectory(prefix="dp5k-neural-") as tmp:
+            res = diagnose_neural(dataset, checkpoint, tmp, steps=cfg.neural_steps, seed=cfg.seed)
+            return {k: res[k] for k in keys if k in res}
+    res = diagnose_neural(dataset, checkpoint, Path(out) / "neural", steps=cfg.neural_steps, seed=cfg.seed)
+    out_res = {k: res[k] for k in keys if k in res}
+    out_res["figures"] = [f"neural/{f}" for f in res.get("figures", [])]
+    return out_res
 
 
 def load_peer(name: str):

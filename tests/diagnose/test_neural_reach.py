@@ -71,3 +71,32 @@ def test_diagnose_neural_extends_exactly_and_reports_gain_per_coc_bin(trained: t
     # the fine-tuned extension is a loadable multi-scale checkpoint
     sim = get_simulator("neural", checkpoint=res["checkpoints"]["extended"])
     assert sim.cfg.multiscale_levels == 2
+
+
+def test_cli_diagnose_neural_checkpoint_reports_its_extension(trained: tuple[Path, Path], tmp_path: Path) -> None:
+    """``dp5k diagnose DS --model neural:CKPT`` carries the structural extension's per-|CoC| gains into the report."""
+    from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
+
+    torch.set_num_threads(1)
+    ds, ckpt = trained
+    out = tmp_path / "diag"
+    res = run_diagnose(ds, f"neural:{ckpt}", out, DiagnoseConfig(fit_pairs=2, det_pairs=2, n_boot=100, neural_steps=2))
+    saved = json.loads((out / "report.json").read_text())
+    ne = saved["neural_extension"]
+    assert saved["model"] == f"neural:{ckpt}" and ne == json.loads(json.dumps(res["neural_extension"]))
+    assert ne["extension"]["init_max_abs_diff"] == 0.0 and ne["extension"]["reach_px_after"] > ne["extension"]["reach_px_before"]
+    assert {"psnr_before", "psnr_after", "psnr_gain_ci95"} <= set(ne["gain_vs_control"])
+    assert len(ne["per_bin"]) == len(ne["bins_px"]) and all((out / f).is_file() for f in ne["figures"])
+    md = (out / "report.md").read_text()
+    assert "structural extension" in md and "gain vs control" in md
+
+
+def test_cli_diagnose_neural_missing_checkpoint_is_a_one_line_error(trained: tuple[Path, Path], tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from dp5k_cli import main
+
+    ds, _ = trained
+    res = CliRunner().invoke(main, ["diagnose", str(ds), "--model", f"neural:{tmp_path / 'nope.pt'}", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 3 and "checkpoint not found" in res.output and "nope.pt" in res.output
+    assert not (tmp_path / "o" / "report.json").exists()
