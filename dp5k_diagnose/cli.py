@@ -19,17 +19,27 @@ log = logging.getLogger(__name__)
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None, help="Report folder (default: DATASET/diagnose-<model>).")
 @click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default=6, show_default=True, help="Training pairs used to fit.")
-def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int) -> None:
+@click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
+              help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
+def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int, nominal_noise: str) -> None:
     """Fit MODEL on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
     """
+    from .detect import DetectConfig
     from .run import DiagnoseConfig, run_diagnose
 
     if not (model in ("base", "disk", "butterworth", "raytrace") or model.startswith("neural:")):
         raise BadInputError(f"unknown model {model!r} (base, disk, butterworth, raytrace or neural:CKPT)", where="--model")
+    try:
+        shot_var, read_sigma = (float(v) for v in nominal_noise.split(","))
+    except ValueError:
+        raise BadInputError(f"--nominal-noise must be SHOT_VAR,READ_SIGMA, got {nominal_noise!r}", where="--nominal-noise") from None
+    if not (shot_var >= 0 and read_sigma >= 0):
+        raise BadInputError(f"--nominal-noise values must be >= 0, got {nominal_noise!r}", where="--nominal-noise")
     out = out_dir or (dataset / f"diagnose-{model.replace(':', '_').replace('/', '_')}")
-    res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs))
+    detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
+    res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect))
     g = res["gain"]
     click.echo(f"cause: {res['cause']}")
     if res["cause"] != "none":

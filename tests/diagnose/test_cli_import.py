@@ -74,6 +74,9 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     assert not (tmp_path / "out" / "dataset.json").exists()
     res = runner.invoke(main, ["diagnose", str(tmp_path), "--model", "nonsense"])
     assert res.exit_code == 3 and "unknown model" in res.output
+    for bad in ("2e-5", "a,b", "-1,0.001"):
+        res = runner.invoke(main, ["diagnose", str(tmp_path), "--nominal-noise", bad])
+        assert res.exit_code == 3 and "--nominal-noise" in res.output, (bad, res.output)
 
 
 @pytest.mark.slow
