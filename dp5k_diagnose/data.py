@@ -42,6 +42,7 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     model can predict it and its error would only dilute every statistic. Kept: valid pixels whose distance
     to the border (px) is at least :math:`\max_{w}|C| / 2 + \text{margin}`, with :math:`\max_w |C|` the
     largest |signed CoC| (output px) in a ``window_px`` neighbourhood (neighbours' blur reaches the pixel too).
+    An image (or crop) where fewer than 10 % of its valid pixels qualify keeps all its valid pixels.
     """
     B, _, H, W = batch.coc_px.shape
     a = batch.coc_px.abs() * batch.valid
@@ -50,7 +51,10 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     ys = torch.arange(H, device=a.device, dtype=a.dtype)
     xs = torch.arange(W, device=a.device, dtype=a.dtype)
     dist = torch.minimum(torch.minimum(ys, H - 1 - ys)[:, None], torch.minimum(xs, W - 1 - xs)[None, :])
-    return batch.valid & (dist >= reach)
+    keep = batch.valid & (dist >= reach)
+    # an image whose blur nearly everywhere reaches past its border: score its valid pixels rather than none
+    few = keep.flatten(1).sum(1) < 0.1 * batch.valid.flatten(1).sum(1)
+    return torch.where(few.view(-1, 1, 1, 1), batch.valid, keep)
 
 
 def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:

@@ -90,6 +90,15 @@ def plot_findings(findings: list[dict[str, Any]], path: Path) -> str:
     return _save(fig, path)
 
 
+def discrimination_text(d: dict[str, Any]) -> str:
+    """One paragraph on the nested test of two detected effects (report.json ``discrimination``)."""
+    a, b = d["effects"]
+    u, pv = d["unique_effect_size"], d["unique_p_value"]
+    return (f"Nested test of the two detected effects: fitted together they explain {d['joint_effect_size']:.3f} of the base "
+            f"model's MSE; `{a}` adds {u[a]:+.3f} (p {pv[a]:.2g}) on top of `{b}`, `{b}` adds {u[b]:+.3f} (p {pv[b]:.2g}) "
+            f"on top of `{a}`: the data needs `{d['winner']}`.")
+
+
 def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) -> None:
     """``out/report.json`` (the contract of issue 7 plus analysis tables) and ``out/report.md`` with figures."""
     out.mkdir(parents=True, exist_ok=True)
@@ -124,6 +133,8 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
     for f in result["findings"]:
         par = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in f["params"].items())
         lines.append(f"| {f['effect']} | {'yes' if f['detected'] else 'no'} | {f['effect_size']:.4f} | {f['statistic']:.2f} | {f['p_value']:.2e} | {par} | {f['explanation']} |")
+    if result.get("discrimination"):
+        lines += ["", discrimination_text(result["discrimination"])]
     lines += ["", f"![findings]({figs['findings']})", "", f"## Gain on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs)", "",
               "| metric | before | after |", "|---|---|---|",
               f"| masked PSNR (dB) | {g['psnr_before']:.3f} | {g['psnr_after']:.3f} |",

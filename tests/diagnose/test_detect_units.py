@@ -101,3 +101,13 @@ def test_discriminate_prefers_the_effect_that_adds_something() -> None:
     assert d is not None and d.winner == "lr_gain_imbalance" and findings[0].effect == "lr_gain_imbalance"
     assert d.unique["lr_gain_imbalance"] > 0.5 > abs(d.unique["misregistration"])
     assert discriminate(findings[:1], base, s, s, DetectConfig()) is None
+
+
+def test_discrimination_is_reported_in_words_and_json() -> None:
+    from dp5k_diagnose.detect import Discrimination
+    from dp5k_diagnose.report import discrimination_text
+
+    d = Discrimination(("lr_gain_imbalance", "field_varying_psf"), {"lr_gain_imbalance": 0.002, "field_varying_psf": 0.21},
+                       {"lr_gain_imbalance": 0.4, "field_varying_psf": 1e-3}, 0.9, "field_varying_psf").to_json()
+    text = discrimination_text(d)
+    assert "`field_varying_psf` adds +0.210 (p 0.001)" in text and text.endswith("the data needs `field_varying_psf`.")
