@@ -85,6 +85,11 @@ def test_procam_depth_triangulates_reference_rays():
     # a code inconsistent with the epipolar geometry (rays miss each other) is rejected
     bad_v = uv[..., 1] + 30.0
     assert np.isnan(procam_depth(rays, f, uv[..., 0], bad_v, ok, model)).all()
+    # no extrapolation: only depths within the range the projector was calibrated on
+    model.depth_range_m = (1.6, 1.9)
+    d = procam_depth(rays, f, uv[..., 0], uv[..., 1], ok, model)
+    inside = ok & (z >= 1.6) & (z <= 1.9)
+    assert np.isfinite(d[inside]).all() and np.isnan(d[~inside]).all()
 
 
 def test_mixed_codes_flags_depth_edges_only():
