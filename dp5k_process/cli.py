@@ -35,7 +35,8 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
 @click.option("--intrinsics", type=click.Path(path_type=Path), default=None,
               help="FileStorage YAML with K0/dist0/K1/dist1 at raw resolution (prior per-camera calibration).")
 @click.option("--fill-steps", type=click.IntRange(1, 4), default=3, show_default=True,
-              help="Steps of Eq. 3 (3 = scales 1, 1/2, 1/4 as in the paper; 4 adds 1/8).")
+              help="Steps of Eq. 3 (3 = scales 1, 1/2, 1/4 as in the paper; 4 adds 1/8). A camera too coarse to "
+                   "resolve a scale's projector pixels gets one more (coarser) step per such scale, up to 1/8.")
 @click.option("--max-rms", type=float, default=1.0, show_default=True, help="Reject a calibration above this reprojection error (px).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene split.")
 def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_window: str, intrinsics: Path | None,

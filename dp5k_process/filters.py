@@ -22,7 +22,9 @@ class FilterConfig:
         close_px: side of the square structuring element of the dilation-erosion (closing), pixels.
         sor_neighbors, sor_std_ratio: Open3D ``remove_statistical_outlier`` (paper [21]; 20, 2.0).
         median_px: side of the valid-only median window (odd), pixels.
-        fill_steps: number of steps of Eq. 3 (paper: i = 1..3, i.e. scales 1, 1/2, 1/4; 4 adds 1/8).
+        fill_steps: number of steps of Eq. 3 (paper: i = 1..3, i.e. scales 1, 1/2, 1/4; 4 adds 1/8). The
+            pipeline adds one coarser step for each of these scales whose projector pixel is smaller than a
+            camera pixel (``dp5k_process.pipeline.fill_steps_for``), up to the decoded scales.
     """
 
     close_px: int = 3

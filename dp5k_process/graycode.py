@@ -54,6 +54,15 @@ class GrayCodeConfig:
         denoise_px: n > 1 adds a second test on n x n box means (noise / n, so thresholds / n): a pixel too
             noisy on its own (dim, far surfaces) takes the bit and the shadow test from its neighbourhood;
             a sharp single-pixel decision still wins, so fine stripes keep their resolution. 0 = off.
+        denoise_wide_px: m > denoise_px adds a wider level (m x m box means, thresholds / m) for surfaces too
+            dim even for the first; a decision at a finer level wins over it. 0 = off.
+        denoise_line_px: L > 1 adds, after the first square level, means over L pixels along the stripes
+            (column bits: a vertical 1 x L line, row bits a horizontal L x 1 line; noise and thresholds /
+            sqrt(L)). Stripes that a surface compresses (a floor receding for the row code, a side wall for the
+            column code) are finer than a square box, which averages them out, but run along these lines. 0 = off.
+        agree_px: a bit decided by a neighbourhood mean counts as reliable only where the pixel's own difference
+            has the same sign (weak evidence, but evidence): a pixel beside a depth edge or a shadow, whose
+            neighbourhood is mostly the other surface, then does not take that surface's code.
     """
 
     proj_width: int = 1920
@@ -64,6 +73,9 @@ class GrayCodeConfig:
     n_scales: int = 4
     max_weak_bits: int = 1
     denoise_px: int = 0
+    denoise_wide_px: int = 0
+    denoise_line_px: int = 0
+    agree_px: bool = False
 
     @classmethod
     def for_linear_raw(cls, proj_width: int = 1920, proj_height: int = 1200, max_weak_bits: int = 1) -> GrayCodeConfig:
@@ -73,10 +85,12 @@ class GrayCodeConfig:
         projector that adds a few hundred counts over the ambient light is normal (the f/22 structured-light
         frames), so the thresholds are set from the sensor noise instead: shadow 0.8 % (127 counts, about
         12 sigma of a white-black difference at that level), bit 0.25 % (40 counts, about 4 sigma) and at least
-        10 % of the pixel's own white-black contrast; plus the 5 x 5 neighbourhood test (``denoise_px``).
+        10 % of the pixel's own white-black contrast; plus the neighbourhood tests for dim surfaces: 15 px lines
+        along the stripes, 5 x 5 and 11 x 11 boxes, each taken only where the pixel's own difference agrees in
+        sign (``denoise_line_px``, ``denoise_px``, ``denoise_wide_px``, ``agree_px``).
         """
         return cls(proj_width, proj_height, white_thr=0.0025, black_thr=0.008, rel_thr=0.10, max_weak_bits=max_weak_bits,
-                   denoise_px=5)
+                   denoise_px=5, denoise_wide_px=11, denoise_line_px=15, agree_px=True)
 
 
 @dataclass
@@ -150,21 +164,34 @@ def decode_graycode(
                             f"projector, got {len(patterns)}")
     w = _as_float(white)
     b = _as_float(black)
-    n = int(cfg.denoise_px)
+    squares = [n for n in (int(cfg.denoise_px), int(cfg.denoise_wide_px)) if n > 1]
+    L = int(cfg.denoise_line_px)
 
-    def box(a: NDArray[np.float32]) -> NDArray[np.float32]:
-        return cv2.boxFilter(a, -1, (n, n), borderType=cv2.BORDER_REFLECT)
+    def box(a: NDArray[np.float32], size: tuple[int, int]) -> NDArray[np.float32]:
+        return cv2.boxFilter(a, -1, size, borderType=cv2.BORDER_REFLECT)
 
-    contrast = np.abs(w - b)
+    wb = w - b
+    contrast = np.abs(wb)
     lit = contrast > cfg.black_thr * full_scale
     thr = np.maximum(np.float32(cfg.white_thr * full_scale), np.float32(cfg.rel_thr) * contrast)
-    if n > 1:
-        contrast_s = np.abs(box(w - b))
+    # per axis: (box size, its bit threshold), finest first; a mean over m pixels has 1/sqrt(m) of the noise
+    levels: list[list[tuple[tuple[int, int], NDArray[np.float32]]]] = [[], []]
+    order: list[int] = squares[:1] + ([-L] if L > 1 else []) + squares[1:]  # the lines after the first square
+    for n in order:
+        if n < 0:  # lines along the stripes
+            for axis, size in enumerate(((1, L), (L, 1))):  # (width, height): along column / row stripes
+                c = np.abs(box(wb, size))
+                levels[axis].append((size, np.maximum(np.float32(cfg.white_thr * full_scale / np.sqrt(L)),
+                                                      np.float32(cfg.rel_thr) * c)))
+            continue
+        contrast_s = np.abs(box(wb, (n, n)))
         lit |= contrast_s > cfg.black_thr * full_scale / n
-        thr_s = np.maximum(np.float32(cfg.white_thr * full_scale / n), np.float32(cfg.rel_thr) * contrast_s)
+        t = np.maximum(np.float32(cfg.white_thr * full_scale / n), np.float32(cfg.rel_thr) * contrast_s)
+        for axis in (0, 1):
+            levels[axis].append(((n, n), t))
     out = []
     offset = 0
-    for nb in (n_bits(cfg.proj_width), n_bits(cfg.proj_height)):
+    for axis, nb in enumerate((n_bits(cfg.proj_width), n_bits(cfg.proj_height))):
         code = np.zeros(w.shape, np.int32)
         prev = np.zeros(w.shape, np.bool_)
         weak = np.zeros(w.shape, np.uint8)
@@ -176,13 +203,14 @@ def decode_graycode(
                 raise BadInputError(f"pattern {offset + 2 * k} has shape {pos.shape}, expected {w.shape}")
             diff = pos - neg
             strong = np.abs(diff) >= thr
-            if n > 1:
-                diff_s = box(diff)
-                strong_s = np.abs(diff_s) >= thr_s
-                bit = np.where(strong, diff > 0, diff_s > 0)
+            bit = diff > 0
+            for size, t in levels[axis]:  # the finest level with a clear decision gives the bit
+                diff_s = box(diff, size)
+                strong_s = np.abs(diff_s) >= t
+                if cfg.agree_px:
+                    strong_s &= (diff_s > 0) == (diff > 0)
+                bit = np.where(strong, bit, diff_s > 0)
                 strong |= strong_s
-            else:
-                bit = diff > 0
             weak += ~strong
             count += weak <= cfg.max_weak_bits
             prev ^= bit  # Gray -> binary: b_k = b_{k-1} xor g_k

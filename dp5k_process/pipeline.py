@@ -37,7 +37,8 @@ from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
 from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
 from .session import Session, check_size
-from .triangulate import (TriangulationConfig, code_view, depth_from_match, match_in_other, normalised_rays)
+from .triangulate import (CodeView, TriangulationConfig, code_view, depth_from_match, match_in_other,
+                          normalised_rays)
 
 
 @dataclass(frozen=True)
@@ -164,6 +165,29 @@ def decode_camera(session: Session, cam: str, gcfg: GrayCodeConfig) -> tuple[Gra
     return dec, (shape[1], shape[0]), full
 
 
+def camera_px_per_projector_px(view: CodeView) -> float:
+    """Side of one projector pixel of ``view``'s scale in camera pixels: median over the valid pixels of
+    ``1 / sqrt(|det d(u, v)/d(x, y)|)`` of the smoothed codes (below 1: the camera cannot resolve that scale's
+    finest stripes). NaN when no pixel is valid."""
+    a, b, c, d = (view.grads[..., k] for k in range(4))
+    det = np.abs(a * d - b * c)[view.valid & np.isfinite(view.u) & np.isfinite(view.v)]
+    det = det[det > 0]
+    return float(1.0 / np.sqrt(np.median(det))) if det.size else float("nan")
+
+
+def fill_steps_for(view0: CodeView, fill_steps: int, n_scales: int) -> int:
+    """Steps of Eq. 3 for this camera: ``fill_steps`` (paper: 3, scales 1, 1/2, 1/4), plus one coarser scale for
+    each of those scales whose projector pixel is smaller than a camera pixel, up to ``n_scales``.
+
+    The paper's scales are for its 1680 x 1120 output (3360 px raw): with the studio's 85 mm lenses and the
+    projector's 1.5 throw ratio a projector pixel spans ~2.8 raw pixels, so every scale's stripes are resolved.
+    On a camera ten times coarser (the small studio scale, ~0.28) the scale-1 to 1/4 stripes are all sub-pixel
+    and the last step reaches 1/8 (``view0``: the camera's codes at scale 1)."""
+    fp = camera_px_per_projector_px(view0)
+    extra = sum(1 for s in range(fill_steps) if np.isfinite(fp) and fp * (1 << s) < 1.0)
+    return int(min(n_scales, fill_steps + extra))
+
+
 def depth_for_camera(
     decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
 ) -> tuple[NDArray[np.float32], dict[str, Any]]:
@@ -184,9 +208,12 @@ def depth_for_camera(
     coarsest = n_scales - 1
     coarse_other = code_view(*decs[other].at_scale(coarsest), decs[other].scale_size(coarsest), cfg.tri, coarsest)
     info: dict[str, Any] = {"per_scale_coverage": [], "per_scale_coverage_stereo": []}
+    v0 = code_view(*decs[ref].at_scale(0), decs[ref].scale_size(0), cfg.tri, 0)
+    n_steps = fill_steps_for(v0, cfg.filt.fill_steps, n_scales)
+    info["fill_scales"] = [f"1/{1 << s}" for s in range(n_steps)]
     views, stereo = [], []
-    for s in range(min(n_scales, cfg.filt.fill_steps)):  # scales Eq. 3 does not reach are not computed
-        v_ref = code_view(*decs[ref].at_scale(s), decs[ref].scale_size(s), cfg.tri, s)
+    for s in range(n_steps):  # scales Eq. 3 does not reach are not computed
+        v_ref = v0 if s == 0 else code_view(*decs[ref].at_scale(s), decs[ref].scale_size(s), cfg.tri, s)
         v_oth = coarse_other if s == coarsest else code_view(*decs[other].at_scale(s), decs[other].scale_size(s), cfg.tri, s)
         q, ok = match_in_other(v_ref, v_oth, cfg.tri, coarse=coarse_other)
         views.append(v_ref)
@@ -202,6 +229,7 @@ def depth_for_camera(
         model = calibrate_projector(np.concatenate(pts), np.concatenate(codes), decs[ref].scale_size(0), cfg.projector)
     info["projector_rms_px"] = None if model is None else model.rms_px
     info["projector_points"] = 0 if model is None else model.n_points
+    info["projector_position_sd_mm"] = None if model is None else model.position_sd_m * 1000.0
     depths = []
     for s, (v, d, f) in enumerate(zip(views, stereo, filtered)):
         info["per_scale_coverage_stereo"].append(float(np.isfinite(f).mean()))
@@ -212,7 +240,7 @@ def depth_for_camera(
             f = filter_depth(np.where(np.isfinite(d), d, dp), rays, cfg.filt)
         depths.append(f)
         info["per_scale_coverage"].append(float(np.isfinite(f).mean()))
-    fused = recursive_fill(depths, cfg.filt.fill_steps)
+    fused = recursive_fill(depths, n_steps)
     info["coverage_raw"] = float(np.isfinite(fused).mean())
     return fused, info
 

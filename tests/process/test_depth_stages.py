@@ -150,3 +150,21 @@ def test_valid_median_chunks_equal_whole():
     d = rng.uniform(1, 2, (70, 33)).astype(np.float32)
     d[rng.random((70, 33)) < 0.4] = np.nan
     np.testing.assert_array_equal(valid_median(d, 5, rows_per_chunk=16), valid_median(d, 5, rows_per_chunk=1000))
+
+
+def test_fill_steps_follow_the_camera_resolution():
+    """Eq. 3's 3 steps (scales 1, 1/2, 1/4) where a projector pixel spans >= 1 camera pixel; one coarser step
+    per scale finer than a camera pixel (up to the 4 decoded scales)."""
+    from dp5k_process.pipeline import camera_px_per_projector_px, fill_steps_for
+    from dp5k_process.triangulate import code_view
+
+    H, W = 60, 80
+    ys, xs = np.mgrid[0:H, 0:W]
+    valid = np.ones((H, W), bool)
+    for per_px, steps in ((0.5, 3), (0.9, 3), (1.5, 4), (4.0, 4)):  # projector px per camera px
+        col = np.floor(xs * per_px).astype(np.int32)
+        row = np.floor(ys * per_px).astype(np.int32)
+        v = code_view(col, row, valid, (int(W * per_px) + 1, int(H * per_px) + 1))
+        assert camera_px_per_projector_px(v) == pytest.approx(1.0 / per_px, rel=0.05)
+        assert fill_steps_for(v, 3, 4) == steps
+    assert fill_steps_for(v, 3, 3) == 3
