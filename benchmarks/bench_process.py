@@ -162,7 +162,8 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None)
                 else f"session reused from {raw}")
     print(f"\n({rendered}; depth coverage {cams['cam0']['depth_coverage']:.3f} / {cams['cam1']['depth_coverage']:.3f}, "
           f"reprojection error {rep['calibration']['reprojection_error_px']:.3f} px; peak memory of this process "
-          f"{peak_gib:.1f} GiB (rendering included); {os.cpu_count()} CPUs, load average "
+          f"{peak_gib:.1f} GiB{' (rendering included)' if t_render is not None else ''}; {os.cpu_count()} CPUs, "
+          f"fill scales {', '.join(cams['cam0'].get('fill_scales', []))}; load average "
           f"{load0[0]:.2f} before / {load1[0]:.2f} after processing)")
 
 
