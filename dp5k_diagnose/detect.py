@@ -270,8 +270,8 @@ def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Detec
     MSE that the excess noise accounts for (used to rank noise against effects measured in MSE).
     """
     var, inten = flat_lr_noise(fit + det, cfg)
-    if not var:
-        return Finding("noise", 0.0, 1.0, 0.0, False, {}, "no flat valid pixels to measure noise", None)
+    if sum(v.size for v in var) < 256:
+        return Finding("noise", 0.0, 1.0, 0.0, False, {}, "too few flat valid pixels to measure noise", None)
     nominal = [cfg.nominal_shot_var * np.maximum(i, 0) + cfg.nominal_read_sigma**2 for i in inten]
     ratios = np.array([np.median(v / n) / MEDIAN_CHI2_1 for v, n in zip(var, nominal) if v.size >= 32])
     t, p = one_sided_t(np.log(np.maximum(ratios, 1e-12)))

@@ -111,3 +111,10 @@ def test_discrimination_is_reported_in_words_and_json() -> None:
                        {"lr_gain_imbalance": 0.4, "field_varying_psf": 1e-3}, 0.9, "field_varying_psf").to_json()
     text = discrimination_text(d)
     assert "`field_varying_psf` adds +0.210 (p 0.001)" in text and text.endswith("the data needs `field_varying_psf`.")
+
+
+def test_noise_on_too_little_data_is_a_plain_non_finding() -> None:
+    sharp = scene(5, n=1, H=8, W=8)
+    f = detect.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 4.0, None, 6)), [], DetectConfig())
+    assert not f.detected and f.p_value == 1.0 and "too few" in f.explanation
+    assert f.to_json()["effect"] == "noise"
