@@ -38,6 +38,8 @@ class DemoScale:
         diag_scenes: scenes of the hidden-effect dataset.
         rgbd_frames: RGBD frames given to ``synthesize``.
         eval_pairs: pairs per dataset that ``evaluate`` compares the simulators on.
+        neural_steps: fine-tuning steps of the Neural DP extension in ``diagnose --model neural:CKPT``
+            (each arm; the demo's network is the paper's U-Net, so a step costs about a second on the CPU).
     """
 
     name: str
@@ -51,12 +53,13 @@ class DemoScale:
     diag_scenes: int
     rgbd_frames: int
     eval_pairs: int
+    neural_steps: int
 
 
 SCALES: dict[str, DemoScale] = {
-    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2, 4),
-    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4, 8),
-    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8, 0),
+    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2, 4, 2),
+    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4, 8, 20),
+    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8, 0, 150),
 }
 
 # Realistic effects for the training data (the world is not the ideal model): Canon-like weak disparity,
@@ -164,7 +167,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
     def diagnose_neural(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-neural"
-        run_cli(["diagnose", str(diag_ds), "--model", f"neural:{run_dir / 'best.pt'}", "--out", str(dout)])
+        run_cli(["diagnose", str(diag_ds), "--model", f"neural:{run_dir / 'best.pt'}", "--out", str(dout),
+                 "--neural-steps", str(scale.neural_steps)])
         return {"out": str(dout)}
 
     def synthesize(ctx: dict[str, Any]) -> dict[str, Any]:

@@ -21,7 +21,10 @@ log = logging.getLogger(__name__)
 @click.option("--fit-pairs", default=6, show_default=True, help="Training pairs used to fit.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
-def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int, nominal_noise: str) -> None:
+@click.option("--neural-steps", default=150, show_default=True, type=click.IntRange(1),
+              help="For neural:CKPT: fine-tuning steps of the structural extension and of its control (each).")
+def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int, nominal_noise: str,
+                     neural_steps: int) -> None:
     """Fit MODEL on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
@@ -39,7 +42,8 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         raise BadInputError(f"--nominal-noise values must be >= 0, got {nominal_noise!r}", where="--nominal-noise")
     out = out_dir or (dataset / f"diagnose-{model.replace(':', '_').replace('/', '_')}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
-    res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect))
+    res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect,
+                                                                neural_steps=neural_steps))
     g = res["gain"]
     click.echo(f"cause: {res['cause']}")
     if res["cause"] != "none":
