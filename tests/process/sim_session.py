@@ -117,3 +117,35 @@ def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 
     truth["focus_distance_m"] = focus_m
     truth["focus_point_px"] = focus_px
     return truth
+
+
+def capture_and_process(tmp_path: Path, scene: str) -> tuple[Path, dict, "DatasetReader"]:
+    """``dp5k capture --sim`` of ``scene`` at the small scale, then ``dp5k process`` with the defaults (asserted
+    to succeed). Returns (the session's ground_truth folder, its truth.json, a reader of the processed dataset)."""
+    from click.testing import CliRunner
+
+    from dp5k_cli import main
+    from dp5k_common.dataset import DatasetReader
+    from dp5k_process.package import process_sessions
+    from dp5k_process.pipeline import ProcessConfig
+
+    res = CliRunner().invoke(main, ["-q", "capture", "--scene", scene, "--sim", "--sim-scale", "small",
+                                    "--out", str(tmp_path / "raw")])
+    assert res.exit_code == 0, res.output
+    outcomes = process_sessions(tmp_path / "raw", tmp_path / "out", ProcessConfig())
+    assert [o.status for o in outcomes] == ["ok"], [o.reason for o in outcomes]
+    gt = tmp_path / "raw" / scene / "ground_truth"
+    return gt, json.loads((gt / "truth.json").read_text()), DatasetReader(tmp_path / "out")
+
+
+def assert_depth_and_focus(pair, gt: Path, truth: dict, cam: str) -> None:
+    """Median abs. relative depth error <= 0.5 % against the true depth (at the output's half resolution) and the
+    focus distance within 0.5 % of the truth (``pair`` a processed :class:`~dp5k_common.dataset.Pair` of ``cam``)."""
+    from .truth import half
+
+    z = cv2.imread(str(gt / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    zh = half(np.where(z > 0, z, np.nan), "mean")
+    ok = pair.valid & np.isfinite(zh)
+    assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
+    F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
+    assert abs(pair.params.focus_distance_mm - F) / F <= 0.005

@@ -6,8 +6,6 @@ focus point lies, so stereo-only depth left the focus window empty and ``dp5k pr
 
 from __future__ import annotations
 
-import json
-
 import cv2
 import numpy as np
 import pytest
@@ -107,30 +105,12 @@ def test_mixed_codes_flags_depth_edges_only():
 @pytest.mark.slow
 def test_capture_sim_demo01_focus_behind_occluder(tmp_path):
     """``dp5k capture --sim`` demo01 processes: depth on the parts hidden from the other camera, focus right."""
-    from click.testing import CliRunner
-
-    from dp5k_cli import main
-    from dp5k_common.dataset import DatasetReader
-    from dp5k_process.package import process_sessions
-    from dp5k_process.pipeline import ProcessConfig
-
+    from .sim_session import assert_depth_and_focus, capture_and_process
     from .truth import half
 
-    res = CliRunner().invoke(main, ["-q", "capture", "--scene", "demo01", "--sim", "--sim-scale", "small",
-                                    "--out", str(tmp_path / "raw")])
-    assert res.exit_code == 0, res.output
-    outcomes = process_sessions(tmp_path / "raw", tmp_path / "out", ProcessConfig())
-    assert [o.status for o in outcomes] == ["ok"], [o.reason for o in outcomes]
-    gt = tmp_path / "raw" / "demo01" / "ground_truth"
-    truth = json.loads((gt / "truth.json").read_text())
-    reader = DatasetReader(tmp_path / "out")
+    gt, truth, reader = capture_and_process(tmp_path, "demo01")
     for cam in ("cam0", "cam1"):
         pair = reader.load(f"demo01_{cam}_f1.8")
-        z = cv2.imread(str(gt / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        zh = half(np.where(z > 0, z, np.nan), "mean")
+        assert_depth_and_focus(pair, gt, truth, cam)
         lit = half(np.isfinite(np.load(gt / f"{cam}_proj_xy.npy")[..., 0]))  # seen by this camera and the projector
-        ok = pair.valid & np.isfinite(zh)
-        assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
         assert (pair.valid & lit).sum() / lit.sum() >= 0.9
-        F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
-        assert abs(pair.params.focus_distance_mm - F) / F <= 0.005

@@ -14,7 +14,7 @@ from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
 from dp5k_process.pipeline import ProcessConfig
 from dp5k_process.validate import plane_error, validate_depth
-from .sim_session import wall_scene, write_session
+from .sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
 from .truth import half, seen_by_both
 
 pytestmark = pytest.mark.slow
@@ -154,26 +154,9 @@ def test_cli_process_resumes_and_validate_depth_rejects_bad_path(processed, tmp_
 
 def test_session_from_dp5k_capture_sim(tmp_path):
     """The contract with the capture stage: a session written by ``dp5k capture --sim`` processes as is."""
-    import cv2
-    from click.testing import CliRunner
-
-    from dp5k_cli import main
-
-    res = CliRunner().invoke(main, ["-q", "capture", "--scene", "wall", "--sim", "--sim-scale", "small",
-                                    "--out", str(tmp_path / "raw")])
-    assert res.exit_code == 0, res.output
-    outcomes = process_sessions(tmp_path / "raw", tmp_path / "out", ProcessConfig())
-    assert [o.status for o in outcomes] == ["ok"]
-    truth = json.loads((tmp_path / "raw" / "wall" / "ground_truth" / "truth.json").read_text())
-    reader = DatasetReader(tmp_path / "out")
+    gt, truth, reader = capture_and_process(tmp_path, "wall")
     for cam in ("cam0", "cam1"):
-        pair = reader.load(f"wall_{cam}_f1.8")
-        z = cv2.imread(str(tmp_path / "raw" / "wall" / "ground_truth" / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED)
-        zh = half(np.where(z > 0, z.astype(np.float64), np.nan), "mean")
-        ok = pair.valid & np.isfinite(zh)
-        assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
-        F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
-        assert abs(pair.params.focus_distance_mm - F) / F <= 0.005
+        assert_depth_and_focus(reader.load(f"wall_{cam}_f1.8"), gt, truth, cam)
 
 
 def test_capture_sim_room_scene_coverage(tmp_path):
@@ -181,28 +164,13 @@ def test_capture_sim_room_scene_coverage(tmp_path):
     and the projector see get depth, at the accuracy targets. It had 84 % (5x5 neighbourhood test), then 89.6 /
     90.6 % (cam0 / cam1, with the projector step), before the tests along the stripes and over 11 x 11 pixels and
     the extra fill step where the camera cannot resolve the finer scales."""
-    import cv2
-    from click.testing import CliRunner
-
-    from dp5k_cli import main
-
-    res = CliRunner().invoke(main, ["-q", "capture", "--scene", "0", "--sim", "--sim-scale", "small",
-                                    "--out", str(tmp_path / "raw")])
-    assert res.exit_code == 0, res.output
-    outcomes = process_sessions(tmp_path / "raw", tmp_path / "out", ProcessConfig())
-    assert [o.status for o in outcomes] == ["ok"], [o.reason for o in outcomes]
-    gt = tmp_path / "raw" / "0" / "ground_truth"
-    truth = json.loads((gt / "truth.json").read_text())
+    gt, truth, reader = capture_and_process(tmp_path, "0")
     proj = {c: np.load(gt / f"{c}_proj_xy.npy") for c in ("cam0", "cam1")}
-    reader = DatasetReader(tmp_path / "out")
     for cam, other in (("cam0", "cam1"), ("cam1", "cam0")):
         pair = reader.load(f"0_{cam}_f1.8")
-        z = cv2.imread(str(gt / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        zh = half(np.where(z > 0, z, np.nan), "mean")
+        assert_depth_and_focus(pair, gt, truth, cam)
         both = half(seen_by_both({"proj_xy": proj[cam], "projector": truth["projector"]},
                                  {"proj_xy": proj[other], "projector": truth["projector"]}))
-        ok = pair.valid & np.isfinite(zh)
-        assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
         assert (pair.valid & both).sum() / both.sum() >= 0.95
         F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
         assert abs(pair.params.focus_distance_mm - F) / F <= 0.005
