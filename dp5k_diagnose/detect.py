@@ -94,6 +94,8 @@ class Finding:
     params: dict[str, float]
     explanation: str
     model: BaseModel | None = field(default=None, repr=False)
+    tile_sse: np.ndarray | None = field(default=None, repr=False)
+    """Per-tile squared errors of ``model`` on the detection set (:func:`tile_mse`), kept for the nested test."""
 
     @property
     def rank_score(self) -> float:
@@ -257,7 +259,7 @@ MEDIAN_CHI2_1 = 0.4549364
 """Median of the chi^2 distribution with one degree of freedom (median of z^2 for z ~ N(0, 1))."""
 
 
-def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig) -> Finding:
+def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig, base_mse: float | None = None) -> Finding:
     r"""The noise finding: white noise in the views beyond a nominal sensor's.
 
     From :func:`flat_lr_noise` (fit and detection samples: nothing is fitted to them), the per-pixel ratio
@@ -267,7 +269,8 @@ def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Detec
     excess variance :math:`\rho - 1` (0 for a nominal sensor; the ``noise`` effect at studio strength 1 is
     about 3). The noise model ``var = shot_var I + read_sigma^2`` is a least-squares line through the
     medians of 8 intensity bins. Also reported: ``excess_fraction``, the share of the base model's residual
-    MSE that the excess noise accounts for (used to rank noise against effects measured in MSE).
+    MSE that the excess noise accounts for (used to rank noise against effects measured in MSE;
+    ``base_mse``, the base model's MSE on the detection set, is measured here when not given).
     """
     var, inten = flat_lr_noise(fit + det, cfg)
     if sum(v.size for v in var) < 256:
@@ -286,11 +289,12 @@ def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Detec
     model = copy_base(base).with_component(Noise())
     comp = model.components[-1]
     comp.params = {"shot_var": float(max(coef[0], 0.0)), "read_sigma": float(math.sqrt(max(coef[1], 0.0)))}
-    base_su, base_co, _ = tile_mse(base, det or fit, cfg.tile_px)
-    mse = float(base_su.sum() / max(base_co.sum(), 1.0))
+    if base_mse is None:
+        base_su, base_co, _ = tile_mse(base, det or fit, cfg.tile_px)
+        base_mse = float(base_su.sum() / max(base_co.sum(), 1.0))
     excess_var = max(rho - 1.0, 0.0) * float(np.mean(n_all))
     params = {**comp.params, "variance_ratio": rho, "noise_sigma_mean": float(math.sqrt(max(np.mean(v_all), 0.0))),
-              "excess_fraction": float(min(excess_var / max(mse, 1e-20), 1.0))}
+              "excess_fraction": float(min(excess_var / max(base_mse, 1e-20), 1.0))}
     detected = bool(p < cfg.alpha and effect > cfg.noise_min_effect)
     return Finding("noise", t, p, effect, detected, params, EXPLAIN["noise"].format(**params), model)
 
@@ -314,7 +318,7 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
     findings = []
     for name in effects:
         if name == "noise":
-            findings.append(test_noise(base, fit, det, cfg))
+            findings.append(test_noise(base, fit, det, cfg, float(base_su.sum() / max(base_co.sum(), 1.0))))
             continue
         model = fitted[name][0]
         su, co, _ = tile_mse(model, det, cfg.tile_px)
@@ -329,7 +333,7 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
         except (KeyError, ValueError):
             text = name
         log.info("%s: effect %.4f t %.2f p %.2g params %s", name, effect, t, p, params)
-        findings.append(Finding(name, t, p, effect, detected, params, text, model))
+        findings.append(Finding(name, t, p, effect, detected, params, text, model, su))
     findings.sort(key=lambda f: (not f.detected, -f.rank_score))
     return findings
 
@@ -383,7 +387,7 @@ def discriminate(findings: list[Finding], base: BaseModel, fit: list[Sample], de
         targets.append((model, "rim_softness_px"))
     fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
     base_su, _, owners = tile_mse(base, det, cfg.tile_px)
-    su = {f.effect: tile_mse(f.model, det, cfg.tile_px)[0] for f in (a, b)}
+    su = {f.effect: f.tile_sse if f.tile_sse is not None else tile_mse(f.model, det, cfg.tile_px)[0] for f in (a, b)}
     su_ab = tile_mse(model, det, cfg.tile_px)[0]
     total = max(float(base_su.sum()), 1e-20)
     unique, pv = {}, {}

@@ -178,18 +178,17 @@ def extend_neural(dataset: str | Path, checkpoint: str | Path, out: str | Path |
     per |CoC| bin, multi-scale kernels added (equal output at start), fine-tuned beside an equally fine-tuned
     control, gains per |CoC| bin. Files go to ``out/neural`` (a temporary folder when ``out`` is None)."""
     import tempfile
+    from contextlib import nullcontext
 
     from .neural_reach import diagnose_neural
 
     keys = ("extension", "metrics", "gain", "gain_vs_control", "bins_px", "per_bin", "error_growth", "figures", "split", "n_pairs")
-    if out is None:
-        with tempfile.TemporaryDirectory(prefix="dp5k-neural-") as tmp:
-            res = diagnose_neural(dataset, checkpoint, tmp, steps=cfg.neural_steps, seed=cfg.seed)
-            return {k: res[k] for k in keys if k in res}
-    res = diagnose_neural(dataset, checkpoint, Path(out) / "neural", steps=cfg.neural_steps, seed=cfg.seed)
-    out_res = {k: res[k] for k in keys if k in res}
-    out_res["figures"] = [f"neural/{f}" for f in res.get("figures", [])]
-    return out_res
+    with tempfile.TemporaryDirectory(prefix="dp5k-neural-") if out is None else nullcontext(Path(out) / "neural") as where:
+        res = diagnose_neural(dataset, checkpoint, where, steps=cfg.neural_steps, seed=cfg.seed)
+    kept = {k: res[k] for k in keys if k in res}
+    if out is not None:  # figure paths relative to the report folder
+        kept["figures"] = [f"neural/{f}" for f in res.get("figures", [])]
+    return kept
 
 
 def load_peer(name: str):
