@@ -45,7 +45,7 @@ class PSFShape:
     Attributes:
         coc_px: (K,) signed CoC diameter of each node, px (sign picks the half: left half for coc > 0).
         scale: multiplies the disc diameter (1 = thin-lens).
-        softness_px: width of the rim's linear ramp, px (0 = hard edge, antialiased on a 4x grid).
+        softness_px: standard deviation of the Gaussian that softens the disc, px (0 = hard edge).
         rim2, rim4: radial weight ``1 + rim2 (rho/R)^2 + rim4 (rho/R)^4`` (0 = uniform disc, > 0 brighter
             rim, < 0 brighter centre), clipped at 0; the PSF is renormalised.
         split: weight of the half-aperture split: the left PSF is ``disc * ((1 - split)/2 + split * half)``,
@@ -65,13 +65,16 @@ class RenderConfig:
     """Discretisation of the layered renderer.
 
     Attributes:
-        node_step_px: spacing of CoC nodes, px (soft assignment between neighbours).
-        max_nodes: cap on the number of nodes (the step grows to respect it).
+        node_step_px: smallest spacing of CoC nodes (near focus), px (soft assignment between neighbours).
+        node_rel_step: spacing of nodes away from focus as a fraction of |CoC| (used where larger than
+            ``node_step_px``).
+        max_nodes: cap on the number of nodes (the spacings grow to respect it).
         supersample: sub-pixel grid factor used to build kernels.
         chunk: pairs rendered at once (memory bound).
     """
 
     node_step_px: float = 1.0
+    node_rel_step: float = 0.0
     max_nodes: int = 24
     supersample: int = 4
     chunk: int = 4
@@ -143,16 +146,34 @@ def field_r2(field: Tensor) -> Tensor:
     return (field[:, :1] ** 2 + field[:, 1:2] ** 2) / 2.0
 
 
+def _fine_supersample(n: int) -> int:
+    """Odd sub-pixel grid factor for an n x n kernel (odd, so that a fine sample sits on every pixel centre)."""
+    return 15 if n <= 9 else (7 if n <= 25 else 5)
+
+
+def _gaussian_1d(sigma: float, device: torch.device) -> Tensor:
+    r = int(math.ceil(3 * sigma))
+    x = torch.arange(-r, r + 1, device=device, dtype=torch.float32)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    return g / g.sum()
+
+
 def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     r"""Left-view PSFs of K nodes, each normalised to sum 1.
 
-    For node k with radius :math:`R = s |c| / 2` (px), on a ``supersample``-times finer grid:
+    For node k with radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
 
     .. math::
-        D(\rho) = \mathrm{clip}((R - \rho)/w + 1/2, 0, 1), \quad w = \max(\text{softness}, 1/ss)
-        P(\rho) = \max(0, 1 + a_2 (\rho/R)^2 + a_4 (\rho/R)^4)
-        S(x) = (1 - k)/2 + k [x \cdot \mathrm{sign}(c) < 0]
-        H_l = \mathrm{pool}(D P S) / \sum D P S
+        D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
+        P(\rho) = \max(0, 1 + a_2 q + a_4 q^2), \quad q = \min(\rho / R', 1)^2
+        S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < 0], \quad k' = k R / R'
+        H_l = \mathrm{tent}(G_\sigma * (D P S)) / \sum
+
+    ``G_sigma`` is a Gaussian of standard deviation ``softness_px`` (the lens' residual blur, px). ``tent``
+    samples the fine PSF at pixel centres through a 2-px triangle: the sharp image is reconstructed by
+    linear interpolation between pixel centres, so a sub-pixel disc keeps its exact centroid
+    (:math:`-2 c / (3 \pi)` px for the left view), i.e. DP disparity does not vanish below 1 px, and
+    ``c = 0`` is exactly the identity. ``supersample`` is a lower bound on ``ss``.
 
     Returns:
         (K, n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
@@ -165,45 +186,76 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
         return t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)
 
     soft, rim2, rim4, split, scale = (per_node(t) for t in (shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.scale))
-    R = (coc.abs() * scale / 2).clamp(min=0.3)  # (K,) px
-    width = soft.clamp(min=1.0 / supersample)
-    half = int(math.ceil(float((R + width).max()) + 1))
+    R = coc.abs() * scale / 2  # (K,) px
+    sigma = soft.clamp(min=0.0)
+    half = int(math.ceil(float((R + 3 * sigma).max()))) + 2
     n = 2 * half + 1
-    ss = supersample
+    ss = max(_fine_supersample(n), supersample | 1)
     fine = (torch.arange(n * ss, device=dev, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
     fy, fx = torch.meshgrid(fine, fine, indexing="ij")
     rho = torch.sqrt(fx**2 + fy**2)[None]  # (1, N, N)
-    Rk = R[:, None, None]
-    disc = ((Rk - rho) / width[:, None, None] + 0.5).clamp(0.0, 1.0)
-    q = (rho / Rk) ** 2
+    Reff = R.clamp(min=0.5 / ss)
+    disc = ((Reff[:, None, None] - rho) * ss + 0.5).clamp(0.0, 1.0)
+    q = (rho / Reff[:, None, None]).clamp(max=1.0) ** 2
     prof_w = (1.0 + rim2[:, None, None] * q + rim4[:, None, None] * q * q).clamp(min=0.0)
     sign = torch.where(coc >= 0, 1.0, -1.0)[:, None, None]
-    left_half = (fx[None] * sign < 0).float()
-    sk = split[:, None, None]
+    left_half = (fx[None] * sign < 0).float() + 0.5 * (fx[None] == 0).float()
+    sk = (split * R / Reff)[:, None, None]  # a disc below the fine grid's resolution keeps its exact centroid
     w = disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half)
-    w = w.reshape(K, n, ss, n, ss).sum(dim=(2, 4))
+    if float(sigma.max()) * ss > 0.3:
+        blurred = []
+        for k in range(K):
+            s_fine = float(sigma[k]) * ss
+            wk = w[k][None, None]
+            if s_fine > 0.3:
+                g = _gaussian_1d(s_fine, dev)
+                r = g.numel() // 2
+                wk = F.conv2d(F.pad(wk, (r, r, 0, 0)), g.view(1, 1, 1, -1))
+                wk = F.conv2d(F.pad(wk, (0, 0, r, r)), g.view(1, 1, -1, 1))
+            blurred.append(wk[0, 0])
+        w = torch.stack(blurred)
+    tent = (1.0 - torch.arange(-(ss - 1), ss, device=dev, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
+    p = (ss - 1) // 2
+    w = F.pad(w[:, None], (p, p, p, p))
+    w = F.conv2d(F.conv2d(w, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[:, 0]
     return w / w.sum(dim=(1, 2), keepdim=True).clamp(min=1e-12)
 
 
 def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
-    """(K,) CoC nodes on a fixed grid ``k * step`` covering the valid CoC range (at least 2 nodes).
+    """(K,) CoC nodes on a fixed grid covering the valid CoC range (at least 2 nodes).
 
-    The grid does not move when the CoC map changes slightly (a fitted parameter's finite difference),
-    so interpolation error stays constant and Jacobians stay clean; ``step`` grows in fixed ratios
-    (1, 1.5, 2, 3, 4, 6, ... x ``node_step_px``) only when the range needs more than ``max_nodes``.
+    Spacing ``max(step, rel * |c|)`` outward from 0 (``step = node_step_px``, ``rel = node_rel_step``): a
+    blend of two neighbouring kernels stands in for the kernel between them, which is accurate when their
+    sizes differ little relative to the blur itself; near focus, where a quarter pixel changes the blur's
+    frequency response most, the steps are smallest. The grid does not move when the CoC map changes
+    slightly (a fitted parameter's finite difference), so interpolation error stays constant and Jacobians
+    stay clean; ``step`` and ``rel`` grow in fixed ratios only when the range needs more than ``max_nodes``.
     """
     v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
     if v.numel() == 0:
         v = coc.reshape(-1)
     lo, hi = float(v.min()), float(v.max())
-    step = cfg.node_step_px
-    factors = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
-    for f in factors:
-        step = cfg.node_step_px * f
-        if math.floor(hi / step) - math.floor(lo / step) + 2 <= cfg.max_nodes:
+    grid: list[float] = []
+    for f in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0, 64.0):
+        step, rel = cfg.node_step_px * f, cfg.node_rel_step * f
+        grid = _node_side(max(hi, 0.0), step, rel)
+        neg = _node_side(max(-lo, 0.0), step, rel)
+        grid = [-x for x in reversed(neg[1:])] + grid
+        # keep the nodes that bracket [lo, hi]
+        i0 = max(0, max((i for i, x in enumerate(grid) if x <= lo), default=0))
+        i1 = min(len(grid) - 1, min((i for i, x in enumerate(grid) if x >= hi), default=len(grid) - 1))
+        grid = grid[i0 : max(i1, i0 + 1) + 1]
+        if len(grid) <= cfg.max_nodes:
             break
-    k0, k1 = math.floor(lo / step), math.floor(hi / step) + 1
-    return torch.arange(k0, k1 + 1, device=coc.device, dtype=torch.float32) * step
+    return torch.tensor(grid, device=coc.device, dtype=torch.float32)
+
+
+def _node_side(extent: float, step: float, rel: float) -> list[float]:
+    """Nodes 0, c1, c2, ... with ``c_{k+1} = c_k + max(step, rel c_k)`` until one lies beyond ``extent``."""
+    out = [0.0]
+    while out[-1] <= extent:
+        out.append(out[-1] + max(step, rel * out[-1]))
+    return out
 
 
 def _embed_kernel_fft(kernels: Tensor, Hp: int, Wp: int) -> Tensor:
@@ -232,7 +284,6 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     B, _, H, W = sharp.shape
     nodes = _nodes(coc, valid, cfg)
     K = nodes.shape[0]
-    step = float(nodes[1] - nodes[0])
     kl = kernel_fn(nodes)  # (K, Ck, n, n)
     Ck, n = kl.shape[1], kl.shape[-1]
     pad = n // 2 + 1
@@ -240,7 +291,11 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     fl = _embed_kernel_fft(kl, Hp, Wp)  # (K, Ck, Hp, Wf)
     fr = _embed_kernel_fft(kl.flip(-1), Hp, Wp)
     per_channel = Ck == 3 or coc.shape[1] == 3
-    t = (coc - nodes[0]) / step  # (B, Cc, H, W) fractional node index
+    # (B, Cc, H, W) fractional node index: linear between the two bracketing nodes
+    c = coc.clamp(float(nodes[0]), float(nodes[-1])).contiguous()
+    i = (torch.searchsorted(nodes, c.reshape(-1), right=True) - 1).clamp(0, K - 2).reshape(c.shape)
+    lo_n, hi_n = nodes[i], nodes[i + 1]
+    t = i.float() + (c - lo_n) / (hi_n - lo_n)
     outs = []
     for b0 in range(0, B, cfg.chunk):
         s = sharp[b0 : b0 + cfg.chunk]
@@ -280,7 +335,7 @@ class BaseModel(DPSimulator):
     """The ideal occlusion-aware thin-lens DP model (half-aperture split) plus optional effect components.
 
     Args:
-        rim_softness_px: width of the disc rim's ramp, px.
+        rim_softness_px: standard deviation of the Gaussian that softens the disc (residual lens blur), px.
         gain: overall intensity gain (views are ``gain * H * sharp / 2``).
         components: effect components (see :class:`Component`), applied in order.
         config: renderer discretisation.

@@ -43,9 +43,26 @@ def test_right_psf_is_hflip_of_left_and_each_sums_to_one() -> None:
     # coc < 0 mirrors the half: left PSF of -c equals right PSF (hflip) of +c at the same size
     k2 = half_disc_kernels(PSFShape(torch.tensor([3.0, -3.0]), one, one * 0.5, one * 0, one * 0, one))
     assert torch.allclose(k2[1], k2[0].flip(-1), atol=1e-6)
-    delta = torch.zeros_like(k[2])
-    delta[k.shape[-1] // 2, k.shape[-1] // 2] = 1.0
-    assert torch.allclose(k[2], delta, atol=1e-6)  # in focus: a delta
+    # in focus the lens' residual blur (softness) is symmetric: no DP disparity; without it, a delta
+    assert torch.allclose(k[2], k[2].flip(-1), atol=1e-6) and torch.allclose(k[2], k[2].flip(-2), atol=1e-6)
+    k0 = half_disc_kernels(PSFShape(torch.tensor([0.0]), one, one * 0.0, one * 0, one * 0, one))[0]
+    delta = torch.zeros_like(k0)
+    delta[k0.shape[-1] // 2, k0.shape[-1] // 2] = 1.0
+    assert torch.allclose(k0, delta, atol=1e-6)
+
+
+@pytest.mark.parametrize("coc", [0.3, 0.6, 1.0, 2.0, 5.0])
+def test_sub_pixel_discs_keep_their_dp_centroid(coc: float) -> None:
+    """The left PSF's centroid is -2c/(3 pi) px at every size (box-pooling a sub-pixel half disc into the
+    centre pixel would erase DP disparity below ~1.5 px); its horizontal variance is the disc's plus the
+    linear-interpolation spread, never less than the disc's."""
+    one = torch.ones(())
+    k = half_disc_kernels(PSFShape(torch.tensor([coc]), one, one * 0.0, one * 0, one * 0, one))[0].double()
+    x = torch.arange(k.shape[-1], dtype=torch.float64) - k.shape[-1] // 2
+    cx = float((k.sum(0) * x).sum())
+    assert cx == pytest.approx(-2 * coc / (3 * np.pi), abs=0.01 * max(coc, 1.0))
+    var_x = float((k.sum(0) * (x - cx) ** 2).sum())
+    assert var_x >= (coc / 2) ** 2 / 4 - (2 * coc / (3 * np.pi)) ** 2 - 1e-6
 
 
 def test_uniform_image_stays_uniform_across_depth_edges_no_dark_seams() -> None:

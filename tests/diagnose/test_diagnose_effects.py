@@ -25,12 +25,12 @@ then requires only that no other effect is named and that nothing gets worse (se
 
 
 KNOWN_GAPS = {
-    "focus_offset": "the fit stops at focus factor ~1.008 (planted ~1.05): the fitted rim softness absorbs the "
-                    "near-focus blur; even the planted value with the rim refitted explains only 0.13 of the MSE (< 0.15)",
-    "psf_profile": "a bright rim on the discs explains ~0.1 of the base model's MSE at 160x96 (planted value, oracle), "
-                   "below the 0.15 effect threshold; the fit does not find it",
+    "focus_offset": "the planted focus factor does not lower the base model's error at 160x96 (oracle ~0.02): 1-px CoC "
+                    "nodes and depth edges err more than the 0.3-0.5 px CoC shift (docs/diagnose.md, misses)",
+    "psf_profile": "the planted rim does not lower the base model's error at 160x96 (oracle ~0.00): node blending and "
+                   "depth edges err more than the rim changes the discs (docs/diagnose.md, misses)",
     "front_back_asymmetry": "the planted front/back PSF difference does not lower the base model's error at 160x96 "
-                            "(oracle effect -0.01): the renderer's mismatch with the studio is larger",
+                            "(oracle ~0.00): the renderer's node blending and depth edges err more",
     "field_varying_psf": "a one-sided off-axis leak is a field-linear L/R gain wherever L = R; lr_gain_imbalance fits "
                          "0.882 vs 0.859 and the nested test finds no unique contribution of the leak at 160x96",
 }
