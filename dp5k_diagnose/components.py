@@ -321,19 +321,6 @@ def global_shift_lk(ref: Tensor, moved: Tensor, mask: Tensor, iters: int = 3) ->
     return dx, dy
 
 
-def gaussian_blur(img: Tensor, sigma_px: float) -> Tensor:
-    """(B, C, H, W) separable Gaussian blur with standard deviation ``sigma_px`` (reflect padding)."""
-    if sigma_px <= 0.05:
-        return img
-    r = int(np.ceil(3 * sigma_px))
-    x = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
-    k = torch.exp(-0.5 * (x / sigma_px) ** 2)
-    k = k / k.sum()
-    C = img.shape[1]
-    out = F.conv2d(F.pad(img, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
-    return F.conv2d(F.pad(out, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
-
-
 class Noise(Component):
     """Sensor noise in the views: white, signal dependent, var = shot_var * I + read_sigma^2 (linear units).
 

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..batch import DPBatch
+from ..metrics import gaussian_window
 from .interface import DPSimulator
 
 __all__ = ["PSFShape", "Component", "RenderConfig", "BaseModel", "half_disc_kernels", "field_coords", "fit_parameters"]
@@ -65,16 +66,13 @@ class RenderConfig:
     """Discretisation of the layered renderer.
 
     Attributes:
-        node_step_px: smallest spacing of CoC nodes (near focus), px (soft assignment between neighbours).
-        node_rel_step: spacing of nodes away from focus as a fraction of |CoC| (used where larger than
-            ``node_step_px``).
-        max_nodes: cap on the number of nodes (the spacings grow to respect it).
+        node_step_px: spacing of CoC nodes, px (soft assignment between neighbours).
+        max_nodes: cap on the number of nodes (the step grows to respect it).
         supersample: sub-pixel grid factor used to build kernels.
         chunk: pairs rendered at once (memory bound).
     """
 
     node_step_px: float = 1.0
-    node_rel_step: float = 0.0
     max_nodes: int = 24
     supersample: int = 4
     chunk: int = 4
@@ -151,11 +149,15 @@ def _fine_supersample(n: int) -> int:
     return 15 if n <= 9 else (7 if n <= 25 else 5)
 
 
-def _gaussian_1d(sigma: float, device: torch.device) -> Tensor:
-    r = int(math.ceil(3 * sigma))
-    x = torch.arange(-r, r + 1, device=device, dtype=torch.float32)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    return g / g.sum()
+def _soften(w: Tensor, sigma_fine: float) -> Tensor:
+    """(N, N) fine-grid PSF convolved with a Gaussian of ``sigma_fine`` fine samples (zero outside);
+    unchanged below 0.3 samples."""
+    if sigma_fine <= 0.3:
+        return w
+    r = int(math.ceil(3 * sigma_fine))
+    g = gaussian_window(2 * r + 1, sigma_fine, device=w.device)
+    w = F.conv2d(F.pad(w[None, None], (r, r, 0, 0)), g.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(w, (0, 0, r, r)), g.view(1, 1, -1, 1))[0, 0]
 
 
 def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
@@ -202,18 +204,7 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     left_half = (fx[None] * sign < 0).float() + 0.5 * (fx[None] == 0).float()
     sk = (split * R / Reff)[:, None, None]  # a disc below the fine grid's resolution keeps its exact centroid
     w = disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half)
-    if float(sigma.max()) * ss > 0.3:
-        blurred = []
-        for k in range(K):
-            s_fine = float(sigma[k]) * ss
-            wk = w[k][None, None]
-            if s_fine > 0.3:
-                g = _gaussian_1d(s_fine, dev)
-                r = g.numel() // 2
-                wk = F.conv2d(F.pad(wk, (r, r, 0, 0)), g.view(1, 1, 1, -1))
-                wk = F.conv2d(F.pad(wk, (0, 0, r, r)), g.view(1, 1, -1, 1))
-            blurred.append(wk[0, 0])
-        w = torch.stack(blurred)
+    w = torch.stack([_soften(w[k], float(sigma[k]) * ss) for k in range(K)])
     tent = (1.0 - torch.arange(-(ss - 1), ss, device=dev, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
     p = (ss - 1) // 2
     w = F.pad(w[:, None], (p, p, p, p))
@@ -222,40 +213,24 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
 
 
 def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
-    """(K,) CoC nodes on a fixed grid covering the valid CoC range (at least 2 nodes).
+    """(K,) CoC nodes on a fixed grid ``k * step`` covering the valid CoC range (at least 2 nodes).
 
-    Spacing ``max(step, rel * |c|)`` outward from 0 (``step = node_step_px``, ``rel = node_rel_step``): a
-    blend of two neighbouring kernels stands in for the kernel between them, which is accurate when their
-    sizes differ little relative to the blur itself; near focus, where a quarter pixel changes the blur's
-    frequency response most, the steps are smallest. The grid does not move when the CoC map changes
-    slightly (a fitted parameter's finite difference), so interpolation error stays constant and Jacobians
-    stay clean; ``step`` and ``rel`` grow in fixed ratios only when the range needs more than ``max_nodes``.
+    The grid does not move when the CoC map changes slightly (a fitted parameter's finite difference),
+    so interpolation error stays constant and Jacobians stay clean; ``step`` grows in fixed ratios
+    (1, 1.5, 2, 3, 4, 6, ... x ``node_step_px``) only when the range needs more than ``max_nodes``.
     """
     v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
     if v.numel() == 0:
         v = coc.reshape(-1)
     lo, hi = float(v.min()), float(v.max())
-    grid: list[float] = []
-    for f in (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0, 64.0):
-        step, rel = cfg.node_step_px * f, cfg.node_rel_step * f
-        grid = _node_side(max(hi, 0.0), step, rel)
-        neg = _node_side(max(-lo, 0.0), step, rel)
-        grid = [-x for x in reversed(neg[1:])] + grid
-        # keep the nodes that bracket [lo, hi]
-        i0 = max(0, max((i for i, x in enumerate(grid) if x <= lo), default=0))
-        i1 = min(len(grid) - 1, min((i for i, x in enumerate(grid) if x >= hi), default=len(grid) - 1))
-        grid = grid[i0 : max(i1, i0 + 1) + 1]
-        if len(grid) <= cfg.max_nodes:
+    step = cfg.node_step_px
+    factors = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
+    for f in factors:
+        step = cfg.node_step_px * f
+        if math.floor(hi / step) - math.floor(lo / step) + 2 <= cfg.max_nodes:
             break
-    return torch.tensor(grid, device=coc.device, dtype=torch.float32)
-
-
-def _node_side(extent: float, step: float, rel: float) -> list[float]:
-    """Nodes 0, c1, c2, ... with ``c_{k+1} = c_k + max(step, rel c_k)`` until one lies beyond ``extent``."""
-    out = [0.0]
-    while out[-1] <= extent:
-        out.append(out[-1] + max(step, rel * out[-1]))
-    return out
+    k0, k1 = math.floor(lo / step), math.floor(hi / step) + 1
+    return torch.arange(k0, k1 + 1, device=coc.device, dtype=torch.float32) * step
 
 
 def _embed_kernel_fft(kernels: Tensor, Hp: int, Wp: int) -> Tensor:
@@ -284,6 +259,7 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     B, _, H, W = sharp.shape
     nodes = _nodes(coc, valid, cfg)
     K = nodes.shape[0]
+    step = float(nodes[1] - nodes[0])
     kl = kernel_fn(nodes)  # (K, Ck, n, n)
     Ck, n = kl.shape[1], kl.shape[-1]
     pad = n // 2 + 1
@@ -291,11 +267,7 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     fl = _embed_kernel_fft(kl, Hp, Wp)  # (K, Ck, Hp, Wf)
     fr = _embed_kernel_fft(kl.flip(-1), Hp, Wp)
     per_channel = Ck == 3 or coc.shape[1] == 3
-    # (B, Cc, H, W) fractional node index: linear between the two bracketing nodes
-    c = coc.clamp(float(nodes[0]), float(nodes[-1])).contiguous()
-    i = (torch.searchsorted(nodes, c.reshape(-1), right=True) - 1).clamp(0, K - 2).reshape(c.shape)
-    lo_n, hi_n = nodes[i], nodes[i + 1]
-    t = i.float() + (c - lo_n) / (hi_n - lo_n)
+    t = (coc - nodes[0]) / step  # (B, Cc, H, W) fractional node index
     outs = []
     for b0 in range(0, B, cfg.chunk):
         s = sharp[b0 : b0 + cfg.chunk]
