@@ -89,6 +89,37 @@ def test_occlusion_near_layer_covers_far_blur() -> None:
     assert float((left + right)[..., :, 10:20].min()) > 0.95
 
 
+def test_surface_split_between_two_nodes_stays_opaque() -> None:
+    """A near surface whose CoC lies halfway between two nodes is split 50/50 between them; the two halves
+    join the transmittance together, so none of the bright far background shows through its middle (a plain
+    over-composite of the halves lets m (1 - m) = 25 % of it through)."""
+    sharp = torch.ones(1, 3, 40, 80)
+    sharp[..., :, 25:55] = 0.0  # dark near surface in the middle
+    coc = torch.full((1, 1, 40, 80), 10.0)  # bright far background, its blur reaching 5 px into the surface
+    coc[..., :, 25:55] = -1.125  # halfway between the nodes -1.25 and -1.0
+    left, right = BaseModel(rim_softness_px=0.0)(make_batch(sharp, coc))
+    assert float((left + right)[..., 2:-2, 27:53].max()) < 1e-3  # 2 px inside its edges: its own blur is opaque there
+    assert float((left + right)[..., :, :12].min()) > 0.99
+
+
+def test_direct_and_fft_blurs_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Small kernels are applied by direct convolution on each node's bounding box, large ones by FFT:
+    forcing every node through the FFT path gives the same views."""
+    import neural_dp.simulators.base as base_mod
+
+    rng = np.random.default_rng(1)
+    sharp = torch.from_numpy(rng.uniform(0, 1, (2, 3, 40, 56)).astype(np.float32))
+    coc = torch.linspace(-5, 9, 56).expand(2, 1, 40, 56).contiguous()
+    coc[..., 10:25, 15:30] = -7.0
+    model = BaseModel(rim_softness_px=0.4)
+    mixed = model(make_batch(sharp, coc))
+    assert any(2 * base_mod._support(k) + 1 <= base_mod.DIRECT_MAX_PX for k in model._kernel_fn(0.0)(torch.tensor([0.0, 1.0, 2.0])))
+    monkeypatch.setattr(base_mod, "DIRECT_MAX_PX", 0)
+    fft_only = model(make_batch(sharp, coc))
+    for a, b in zip(mixed, fft_only):
+        assert torch.allclose(a, b, atol=1e-5)
+
+
 def test_fit_recovers_softness_and_gain() -> None:
     rng = np.random.default_rng(0)
     sharp = torch.from_numpy(rng.uniform(0.1, 0.9, (2, 3, 48, 64)).astype(np.float32))
