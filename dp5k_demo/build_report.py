@@ -166,7 +166,9 @@ def build_report(out: Path, scale: DemoScale, records: dict[str, dict[str, Any]]
         g = drep["gain"]
         s.text(f"<b>{name} model</b>: named cause <b>{drep['cause']}</b>; PSNR {g['psnr_before']:.2f} -> {g['psnr_after']:.2f} dB "
                f"(gain 95 % CI [{g['psnr_gain_ci95'][0]:.2f}, {g['psnr_gain_ci95'][1]:.2f}] dB), SSIM {g['ssim_before']:.4f} -> "
-               f"{g['ssim_after']:.4f}, MAE {g['mae_before']:.4f} -> {g['mae_after']:.4f} on the held-out split.", raw_html=True)
+               f"{g['ssim_after']:.4f}, MAE {g['mae_before']:.4f} -> {g['mae_after']:.4f} on the held-out split's predictable pixels"
+               + (f" (all valid pixels: PSNR {g['all_valid']['psnr_before']:.2f} -> {g['all_valid']['psnr_after']:.2f} dB)" if "all_valid" in g else "")
+               + ".", raw_html=True)
         s.table(f"diagnose_{name}", ["effect", "statistic", "p-value", "effect size", "detected"],
                 [[f["effect"], f["statistic"], f["p_value"], f["effect_size"], f["detected"]] for f in drep["findings"]],
                 f"Every effect tested for the {name} model, ranked.", digits=3)

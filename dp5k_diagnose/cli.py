@@ -48,8 +48,12 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     click.echo(f"cause: {res['cause']}")
     if res["cause"] != "none":
         click.echo(f"  {res['findings'][0]['explanation']}")
-    click.echo(f"gain on {g['split']}: PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
+    click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
                f"(95% CI of the gain [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
+    av = g.get("all_valid")
+    if av:
+        click.echo(f"  all valid pixels: PSNR {av['psnr_before']:.3f} -> {av['psnr_after']:.3f} dB "
+                   f"(95% CI [{av['psnr_gain_ci95'][0]:+.3f}, {av['psnr_gain_ci95'][1]:+.3f}])")
     ne = res.get("neural_extension")
     if ne:
         gc = ne["gain_vs_control"]

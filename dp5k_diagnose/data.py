@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,8 +42,9 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     (or crop's) border part of that light comes from scene content the sharp image does not show, so no
     model can predict it and its error would only dilute every statistic. Kept: valid pixels whose distance
     to the border (px) is at least :math:`\max_{w}|C| / 2 + \text{margin}`, with :math:`\max_w |C|` the
-    largest |signed CoC| (output px) in a ``window_px`` neighbourhood (neighbours' blur reaches the pixel too).
-    An image (or crop) where fewer than 10 % of its valid pixels qualify keeps all its valid pixels.
+    largest |signed CoC| (output px) in a ``window_px`` neighbourhood (neighbours' blur reaches the pixel too),
+    and that no depth edge's blur reaches (:func:`occlusion_free_mask`). An image (or crop) where fewer than
+    10 % of its valid pixels are far enough from the border keeps all of them (less those near depth edges).
     """
     B, _, H, W = batch.coc_px.shape
     a = batch.coc_px.abs() * batch.valid
@@ -54,7 +56,43 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     keep = batch.valid & (dist >= reach)
     # an image whose blur nearly everywhere reaches past its border: score its valid pixels rather than none
     few = keep.flatten(1).sum(1) < 0.1 * batch.valid.flatten(1).sum(1)
-    return torch.where(few.view(-1, 1, 1, 1), batch.valid, keep)
+    keep = torch.where(few.view(-1, 1, 1, 1), batch.valid, keep)
+    return keep & occlusion_free_mask(batch)
+
+
+def occlusion_free_mask(batch: DPBatch, min_jump_px: float = 0.5, rel_jump: float = 0.1, margin_px: float = 1.5) -> Tensor:
+    r"""(B, 1, H, W) bool: pixels out of reach of every depth edge's blur.
+
+    At a depth edge the views mix light from surfaces the RGBD input does not show (the background behind
+    a blurred foreground's rim) and depend on how the two sides' blurs are composited, which no RGBD model
+    knows: such pixels measure the occlusion model, not the lens. A depth edge is a pair of neighbouring
+    pixels whose signed CoC differs by more than :math:`\max(\text{min\_jump}, \text{rel\_jump}
+    \cdot \max|C|)` px; a pixel is dropped when it lies within :math:`\max|C|/2 + \text{margin}` px of one
+    (square neighbourhoods, radii rounded up in steps of 25 %). Invalid pixels count as CoC 0, so the
+    border of a region without depth is an edge as well.
+    """
+    c = torch.where(batch.valid, batch.coc_px[:, :1], torch.zeros_like(batch.coc_px[:, :1]))
+    a = c.abs()
+    dx, dy = (c[..., :, 1:] - c[..., :, :-1]).abs(), (c[..., 1:, :] - c[..., :-1, :]).abs()
+    mx, my = torch.maximum(a[..., :, 1:], a[..., :, :-1]), torch.maximum(a[..., 1:, :], a[..., :-1, :])
+    ex = dx > (rel_jump * mx).clamp(min=min_jump_px)  # invalid pixels count as CoC 0: their border is an edge too
+    ey = dy > (rel_jump * my).clamp(min=min_jump_px)
+    edge = torch.zeros_like(batch.valid)
+    edge[..., :, 1:] |= ex
+    edge[..., :, :-1] |= ex
+    edge[..., 1:, :] |= ey
+    edge[..., :-1, :] |= ey
+    reach = torch.nn.functional.max_pool2d(a, 3, stride=1, padding=1) / 2 + margin_px
+    near = torch.zeros_like(batch.valid)
+    r = 2.0
+    lower = 0.0
+    while bool((edge & (reach > lower)).any()):
+        sel = edge & (reach > lower) & (reach <= r)
+        if bool(sel.any()):
+            k = 2 * int(math.ceil(r)) + 1
+            near |= torch.nn.functional.max_pool2d(sel.float(), k, stride=1, padding=k // 2) > 0
+        lower, r = r, math.ceil(1.25 * r)
+    return ~near
 
 
 def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:

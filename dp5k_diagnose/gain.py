@@ -26,17 +26,34 @@ class PairMetrics:
     mae: np.ndarray
 
 
-def pair_metrics(predict: Predict, samples: list[Sample]) -> PairMetrics:
-    ids, ps, ss, ms = [], [], [], []
+MASKS = ("predictable", "valid")
+"""Pixel masks the metrics can be taken over: ``predictable`` (:attr:`Sample.score`: valid pixels out of blur
+reach of the frame border and of depth edges, the pixels diagnose fits and tests on) or all ``valid`` ones."""
+
+
+def pair_metrics(predict: Predict, samples: list[Sample], mask: str = "valid") -> PairMetrics:
+    """Per-pair masked PSNR, SSIM and MAE of ``predict`` over ``mask`` pixels (one of :data:`MASKS`); a pair
+    without such pixels gets NaN."""
+    return pair_metrics_by_mask(predict, samples, (mask,))[mask]
+
+
+def pair_metrics_by_mask(predict: Predict, samples: list[Sample], masks: tuple[str, ...] = MASKS) -> dict[str, PairMetrics]:
+    """:func:`pair_metrics` for several masks from one rendering of each sample."""
+    for mask in masks:
+        if mask not in MASKS:
+            raise ValueError(f"unknown mask {mask!r} (known: {', '.join(MASKS)})")
+    ids: list[str] = []
+    acc: dict[str, dict[str, list[np.ndarray]]] = {m: {"psnr": [], "ssim": [], "mae": []} for m in masks}
     with torch.no_grad():
         for s in samples:
             l, r = predict(s)
-            m = view_metrics(l.clamp(0, 1), r.clamp(0, 1), s.batch.left, s.batch.right, s.batch.valid)
             ids += list(s.batch.pair_ids)
-            ps.append(m["psnr"].numpy())
-            ss.append(m["ssim"].numpy())
-            ms.append(m["mae"].numpy())
-    return PairMetrics(ids, np.concatenate(ps), np.concatenate(ss), np.concatenate(ms))
+            for mask in masks:
+                where = s.score if mask == "predictable" else s.batch.valid
+                m = view_metrics(l.clamp(0, 1), r.clamp(0, 1), s.batch.left, s.batch.right, where)
+                for k in ("psnr", "ssim", "mae"):
+                    acc[mask][k].append(m[k].numpy())
+    return {mask: PairMetrics(ids, *(np.concatenate(acc[mask][k]) for k in ("psnr", "ssim", "mae"))) for mask in masks}
 
 
 def bootstrap_ci(diff: np.ndarray, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> tuple[float, float]:
@@ -52,13 +69,14 @@ def bootstrap_ci(diff: np.ndarray, n_boot: int = 2000, level: float = 0.95, seed
     return float(np.quantile(means, a)), float(np.quantile(means, 1 - a))
 
 
-def gain_report(before: PairMetrics, after: PairMetrics, split: str, n_boot: int = 2000, seed: int = 0) -> dict:
-    """The ``gain`` object of report.json (means over pairs) plus per-pair PSNR gains."""
+def gain_report(before: PairMetrics, after: PairMetrics, split: str, n_boot: int = 2000, seed: int = 0, mask: str = "valid") -> dict:
+    """The ``gain`` object of report.json (means over pairs with finite metrics) plus per-pair PSNR gains."""
     d = after.psnr - before.psnr
     lo, hi = bootstrap_ci(d, n_boot, seed=seed)
     return {
         "split": split,
-        "n_pairs": int(before.psnr.size),
+        "mask": mask,
+        "n_pairs": int(np.isfinite(d).sum()),
         "psnr_before": float(np.nanmean(before.psnr)),
         "psnr_after": float(np.nanmean(after.psnr)),
         "ssim_before": float(np.nanmean(before.ssim)),

@@ -18,7 +18,7 @@ from neural_dp.simulators.base import BaseModel
 
 from .data import Sample, crop_samples, full_samples, load_pairs
 from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, name_cause, test_effects
-from .gain import gain_report, pair_metrics
+from .gain import gain_report, pair_metrics_by_mask
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ class DiagnoseConfig:
     fit_pairs: int = 4
     crop_px: int = 96
     crops_per_pair: int = 2
-    det_pairs: int = 8
+    det_pairs: int = 16
     n_boot: int = 2000
     seed: int = 0
     detect: DetectConfig = field(default_factory=DetectConfig)
@@ -115,9 +115,11 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     t_det = time.perf_counter()
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
     held = full_samples(load_pairs(reader, splits[gain_split]))
-    before = pair_metrics(lambda s: base.render(s.batch, s.field), held)
-    after = before if extended is base else pair_metrics(lambda s: extended.render(s.batch, s.field), held)
-    gain = gain_report(before, after, gain_split, cfg.n_boot, cfg.seed)
+    before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
+    after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
+    gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
+    g_all = gain_report(before["valid"], after["valid"], gain_split, cfg.n_boot, cfg.seed, "valid")
+    gain["all_valid"] = {k: v for k, v in g_all.items() if k not in ("split", "per_pair_psnr_gain")}
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
     return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, disc)
@@ -159,9 +161,12 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
         analysis["after"] = analyse(lambda s: diag.extended.render(s.batch, s.field), held)
     if model != "base":
         peer = load_peer(model)
-        pm = pair_metrics(lambda s: peer(s.batch), held)
+        by_mask = pair_metrics_by_mask(lambda s: peer(s.batch), held)
+        pm, pv = by_mask["predictable"], by_mask["valid"]
         result["model"] = model
-        result["peer"] = {"name": model, "psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)), "mae": float(np.nanmean(pm.mae)),
+        result["peer"] = {"name": model, "mask": "predictable", "psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)),
+                          "mae": float(np.nanmean(pm.mae)),
+                          "all_valid": {"psnr": float(np.nanmean(pv.psnr)), "ssim": float(np.nanmean(pv.ssim)), "mae": float(np.nanmean(pv.mae))},
                           "note": "effects are named and added on the physical base model; the peer's own errors are in analysis.peer"}
         analysis["peer"] = analyse(lambda s: peer(s.batch), held, with_psfs=False)
     if model.startswith("neural:"):

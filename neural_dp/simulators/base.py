@@ -22,6 +22,7 @@ channel and field radius) or the rendered views, and carries its own parameters 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import ClassVar
@@ -168,7 +169,45 @@ def _soften(w: Tensor, sigma_fine: float) -> Tensor:
     return F.conv2d(F.pad(w, (0, 0, r, r)), g.view(1, 1, -1, 1))[0, 0]
 
 
+_KERNEL_CACHE: "OrderedDict[tuple, Tensor]" = OrderedDict()
+_KERNEL_CACHE_SIZE = 4096
+
+
 def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
+    r"""Left-view PSFs of K nodes, each normalised to sum 1 (see :func:`_half_disc_group` for the maths).
+
+    Each node's kernel is built at its own size (so the many small kernels near focus are cheap) and kept
+    in a small LRU cache keyed by its shape parameters: a fit renders the same nodes for every batch.
+
+    Returns:
+        (K, n, n) float tensor, n odd, centred (the largest node's size, others zero-padded); the right
+        PSF is ``flip(-1)`` of it.
+    """
+    coc = shape.coc_px
+    K = coc.shape[0]
+
+    def per_node(t: Tensor) -> list[float]:
+        return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
+
+    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split)]
+    kernels = []
+    for k in range(K):
+        key = (str(coc.device), supersample) + tuple(c[k] for c in cols)
+        ker = _KERNEL_CACHE.get(key)
+        if ker is None:
+            one = PSFShape(*(torch.tensor([c[k]], device=coc.device, dtype=torch.float32) for c in cols))
+            ker = _half_disc_group(one, supersample)[0]
+            _KERNEL_CACHE[key] = ker
+            if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
+                _KERNEL_CACHE.popitem(last=False)
+        else:
+            _KERNEL_CACHE.move_to_end(key)
+        kernels.append(ker)
+    n = max(k.shape[-1] for k in kernels)
+    return torch.stack([F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in kernels])
+
+
+def _half_disc_group(shape: PSFShape, supersample: int = 4) -> Tensor:
     r"""Left-view PSFs of K nodes, each normalised to sum 1.
 
     For node k with radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:

@@ -94,6 +94,10 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
     g = rep["gain"]
     assert set(g) >= {"split", "psnr_before", "psnr_after", "ssim_before", "ssim_after", "mae_before", "mae_after", "psnr_gain_ci95"}
     assert g["split"] == "test" and g["psnr_gain_ci95"][0] > 0
+    # the headline gain counts predictable pixels; the same metrics over all valid pixels ride along
+    assert g["mask"] == "predictable" and g["all_valid"]["mask"] == "valid"
+    assert set(g["all_valid"]) >= {"psnr_before", "psnr_after", "ssim_before", "mae_after", "psnr_gain_ci95"}
+    assert g["all_valid"]["psnr_after"] > g["all_valid"]["psnr_before"]
     md = (out / "report.md").read_text()
     assert "Cause: `lr_gain_imbalance`" in md
     for fig in rep["figures"].values():

@@ -118,3 +118,56 @@ def test_noise_on_too_little_data_is_a_plain_non_finding() -> None:
     f = detect.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 4.0, None, 6)), [], DetectConfig())
     assert not f.detected and f.p_value == 1.0 and "too few" in f.explanation
     assert f.to_json()["effect"] == "noise"
+
+
+def test_effect_sizes_are_shares_of_the_error_beyond_noise() -> None:
+    """With a perfect model the base error is the views' noise: the systematic error is the floor. With a
+    5 % gain error on top, it is the base error less the measured noise, i.e. the gain error's own energy."""
+    sharp = scene(4)
+    left, right = noisy_views(sharp, 2.0, None, 5)
+    cfg = DetectConfig()
+    for gain_error in (0.0, 0.05):
+        s = samples(sharp, left * (1 + gain_error), right * (1 + gain_error))
+        noise = detect.test_noise(BaseModel(), s, [], cfg)
+        base_su, _, _ = detect.tile_mse(BaseModel(rim_softness_px=0.0), s, cfg.tile_px)
+        total = float(base_su.sum())
+        sys_sse = detect.systematic_sse(total, s, noise, cfg)
+        if gain_error == 0.0:
+            assert sys_sse == pytest.approx(cfg.systematic_floor * total)
+        else:
+            truth = float(((torch.cat([left, right], 1) * gain_error) ** 2).sum())
+            assert sys_sse == pytest.approx(truth, rel=0.1)
+
+
+def test_occlusion_free_mask_drops_pixels_within_blur_reach_of_depth_edges() -> None:
+    from dp5k_diagnose.data import occlusion_free_mask
+
+    H, W = 40, 80
+    coc = torch.full((1, 1, H, W), 2.0)
+    coc[..., :, 40:] = 10.0  # a jump of 8 px at x = 40: blur reaches 5 px + 1.5 px margin
+    m = occlusion_free_mask(make_batch(torch.rand(1, 3, H, W), coc))[0, 0]
+    assert m[20, 10] and m[20, 70]
+    assert not m[20, 38] and not m[20, 44]
+    smooth = torch.linspace(2.0, 10.0, W).expand(1, 1, H, W).contiguous()  # a slanted plane: no edge
+    assert occlusion_free_mask(make_batch(torch.rand(1, 3, H, W), smooth)).all()
+
+
+def test_gain_metrics_count_only_the_chosen_mask() -> None:
+    """``predictable`` takes the Sample's score mask, ``valid`` every valid pixel: an error placed only outside
+    the score mask leaves the predictable PSNR perfect and lowers the all-valid one."""
+    from dp5k_diagnose.gain import pair_metrics_by_mask
+
+    sharp = scene(6, n=2)
+    left, right = sharp / 2, sharp / 2
+    s = samples(sharp, left, right)[0]
+    s.score = torch.zeros_like(s.batch.valid)
+    s.score[..., 8:-8, 8:-8] = True
+
+    def predict(smp: Sample) -> tuple[torch.Tensor, torch.Tensor]:
+        bad_l, bad_r = smp.batch.left.clone(), smp.batch.right.clone()
+        bad_l[..., :4, :] += 0.2  # wrong only in rows the score mask leaves out
+        bad_r[..., :4, :] -= 0.2
+        return bad_l, bad_r
+
+    m = pair_metrics_by_mask(predict, [s])
+    assert np.all(m["predictable"].psnr > 80) and np.all(m["valid"].psnr < 40)
