@@ -85,7 +85,7 @@ def plot_findings(findings: list[dict[str, Any]], path: Path) -> str:
     vals = [f["effect_size"] for f in findings]
     colors = ["tab:red" if f["detected"] else "tab:gray" for f in findings]
     ax.barh(names[::-1], vals[::-1], color=colors[::-1])
-    ax.set_xlabel("effect size (relative MSE reduction on the detection set)")
+    ax.set_xlabel("effect size (share of the error beyond noise removed; noise: excess variance)")
     ax.tick_params(labelsize=7)
     return _save(fig, path)
 
@@ -126,6 +126,10 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
         f"Base model fitted on train: {json.dumps({k: round(v, 4) for k, v in result.get('base_params', {}).items()})}",
         "",
         "## Findings (every effect tested, ranked)",
+        "",
+        "Effect size: the share of the base model's systematic error (its squared error less the views' measured "
+        "white noise) that the effect removes on detection pairs it was not fitted on; for `noise`, the excess "
+        "noise variance over a nominal sensor's.",
         "",
         "| effect | detected | effect size | statistic (t) | p-value | parameters | explanation |",
         "|---|---|---|---|---|---|---|",
