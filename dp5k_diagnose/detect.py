@@ -163,8 +163,13 @@ def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.nda
     su = torch.cat(sums).double().numpy()
     co = torch.cat(counts).double().numpy()
     own = np.array(owners)
-    keep = co >= 0.5 * co.max()
+    keep = kept_tiles(co)
     return su[keep], co[keep], own[keep]
+
+
+def kept_tiles(counts: np.ndarray) -> np.ndarray:
+    """(n,) bool: the tiles the statistics use, those at least half as scored as the best-scored tile."""
+    return counts >= 0.5 * counts.max()
 
 
 def clustered_delta(base_su: np.ndarray, su: np.ndarray, co: np.ndarray, owners: np.ndarray) -> np.ndarray:
@@ -364,7 +369,7 @@ def noise_sse(samples: list[Sample], shot_var: float, read_sigma: float, tile: i
         sums.append(su)
         counts.append(co)
     su, co = torch.cat(sums).double().numpy(), torch.cat(counts).double().numpy()
-    return float(su[co >= 0.5 * co.max()].sum()) if co.size else 0.0
+    return float(su[kept_tiles(co)].sum()) if co.size else 0.0
 
 
 def systematic_sse(base_total: float, det: list[Sample], noise: Finding | None, cfg: DetectConfig) -> float:

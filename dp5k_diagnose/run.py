@@ -161,12 +161,10 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
         analysis["after"] = analyse(lambda s: diag.extended.render(s.batch, s.field), held)
     if model != "base":
         peer = load_peer(model)
-        by_mask = pair_metrics_by_mask(lambda s: peer(s.batch), held)
-        pm, pv = by_mask["predictable"], by_mask["valid"]
+        by_mask = {m: {k: float(np.nanmean(getattr(pm, k))) for k in ("psnr", "ssim", "mae")}
+                   for m, pm in pair_metrics_by_mask(lambda s: peer(s.batch), held).items()}
         result["model"] = model
-        result["peer"] = {"name": model, "mask": "predictable", "psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)),
-                          "mae": float(np.nanmean(pm.mae)),
-                          "all_valid": {"psnr": float(np.nanmean(pv.psnr)), "ssim": float(np.nanmean(pv.ssim)), "mae": float(np.nanmean(pv.mae))},
+        result["peer"] = {"name": model, "mask": "predictable", **by_mask["predictable"], "all_valid": by_mask["valid"],
                           "note": "effects are named and added on the physical base model; the peer's own errors are in analysis.peer"}
         analysis["peer"] = analyse(lambda s: peer(s.batch), held, with_psfs=False)
     if model.startswith("neural:"):

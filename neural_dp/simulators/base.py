@@ -203,8 +203,13 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
         else:
             _KERNEL_CACHE.move_to_end(key)
         kernels.append(ker)
+    return _stack_centred(kernels)
+
+
+def _stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
+    """Stack centred odd square kernels (..., n_i, n_i) of different sizes, zero-padded to the largest."""
     n = max(k.shape[-1] for k in kernels)
-    return torch.stack([F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in kernels])
+    return torch.stack([F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in kernels], dim=dim)
 
 
 def _half_disc_group(shape: PSFShape, supersample: int = 4) -> Tensor:
@@ -367,8 +372,10 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     Hp, Wp = next_fast_len(H + 2 * pad, real=True), next_fast_len(W + 2 * pad, real=True)
     support = [_support(kl[k]) for k in range(K)]
     big = [k for k in range(K) if 2 * support[k] + 1 > DIRECT_MAX_PX]
-    fl = _embed_kernel_fft(kl[big], Hp, Wp) if big else None  # (Kbig, Ck, Hp, Wf)
-    fr = _embed_kernel_fft(kl[big].flip(-1), Hp, Wp) if big else None
+    spectra: dict[int, tuple[Tensor, Tensor]] = {}  # node -> rfft2 of its left and right kernels (Ck, Hp, Wf)
+    if big:
+        fl, fr = _embed_kernel_fft(kl[big], Hp, Wp), _embed_kernel_fft(kl[big].flip(-1), Hp, Wp)
+        spectra = {k: (fl[i], fr[i]) for i, k in enumerate(big)}
     per_channel = Ck == 3 or coc.shape[1] == 3
     nc = 3 if per_channel else 1
     t = _fractional_index(coc, nodes)  # (B, Cc, H, W)
@@ -398,8 +405,7 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
                 pending = [p for p in pending if not occludes(p[0], node_c[k])]
             m = m.expand(nb, 3, H, W) if per_channel else m
             sig = torch.cat([s * m, m], dim=1)  # (nb, 3 + nc, H, W)
-            blurred = _blur_node(sig, kl[k], support[k], hit, fl[big.index(k)] if k in big else None,
-                                 fr[big.index(k)] if k in big else None, pad, Hp, Wp, per_channel)
+            blurred = _blur_node(sig, kl[k], support[k], hit, spectra.get(k), pad, Hp, Wp)
             alphas = {}
             for v in ("l", "r"):
                 col, alpha = blurred[v][:, :3], blurred[v][:, 3 : 3 + nc].clamp(0.0, 1.0)
@@ -411,20 +417,20 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs])
 
 
-def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, fk_l: Tensor | None, fk_r: Tensor | None,
-               pad: int, Hp: int, Wp: int, per_channel: bool) -> dict[str, Tensor]:
-    """Blur one node's layer ``sig`` (B, C, H, W: colour then alpha) with its left kernel and its hflip.
+def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, spectra: tuple[Tensor, Tensor] | None,
+               pad: int, Hp: int, Wp: int) -> dict[str, Tensor]:
+    """Blur one node's layer ``sig`` (B, C, H, W: colour then alpha, C = 4 or 6) with its left kernel
+    ``kernel`` (Ck, n, n) and its hflip; per-channel kernels (Ck = 3) come with C = 6.
 
-    Small kernels (``fk_l`` None) are applied by direct convolution inside the bounding box of ``hit``
+    Small kernels (``spectra`` None) are applied by direct convolution inside the bounding box of ``hit``
     (H, W bool, where the node has members) grown by the kernel's ``support``; large ones by FFT
-    (``fk_l``/``fk_r``: their rfft2 on the (Hp, Wp) grid).
+    (``spectra``: the left and right kernels' rfft2 on the (Hp, Wp) grid).
 
     Returns:
         {"l": (B, C, H, W), "r": (B, C, H, W)}.
     """
     B, C, H, W = sig.shape
-    nc = C - 3
-    if fk_l is None:
+    if spectra is None:
         rows = torch.nonzero(hit.any(1)).flatten()
         cols = torch.nonzero(hit.any(0)).flatten()
         y0, y1 = max(int(rows[0]) - support, 0), min(int(rows[-1]) + support + 1, H)
@@ -436,10 +442,7 @@ def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, fk_l: Ten
         src = F.pad(sig[..., ys0:ys1, xs0:xs1], (support - (x0 - xs0), support - (xs1 - x1), support - (y0 - ys0), support - (ys1 - y1)))
         out = {}
         for v, kv in (("l", k), ("r", k.flip(-1))):
-            if kv.shape[0] == 1:
-                w = kv.expand(C, -1, -1)
-            else:
-                w = torch.cat([kv, kv[:nc] if nc == 3 else kv[1:2]], 0)
+            w = kv.expand(C, -1, -1) if kv.shape[0] == 1 else torch.cat([kv, kv], 0)  # colour, then alpha
             w = w.flip(-1, -2)[:, None]  # conv2d correlates: flip for a true convolution (light spreading)
             res = sig.new_zeros(B, C, H, W)
             res[..., y0:y1, x0:x1] = F.conv2d(src, w, groups=C)
@@ -448,10 +451,10 @@ def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, fk_l: Ten
     sigp = F.pad(sig, (pad, Wp - W - pad, pad, Hp - H - pad))
     fs = torch.fft.rfft2(sigp)
     out = {}
-    for v, fk in (("l", fk_l), ("r", fk_r)):
-        if per_channel:
+    for v, fk in zip(("l", "r"), spectra):
+        if C == 6:
             kk = fk if fk.shape[0] == 3 else fk.expand(3, *fk.shape[1:])
-            prod = fs * torch.cat([kk, kk[:nc]], dim=0)[None]
+            prod = fs * torch.cat([kk, kk], dim=0)[None]
         else:
             prod = fs * fk[None]
         out[v] = torch.fft.irfft2(prod, s=(Hp, Wp))[..., pad : pad + H, pad : pad + W]
@@ -509,10 +512,7 @@ class BaseModel(DPSimulator):
         def fn(nodes: Tensor) -> Tensor:
             if not chan:
                 return half_disc_kernels(self._shape(nodes, -1, r2), ss)[:, None]
-            ks = [half_disc_kernels(self._shape(nodes, ch, r2), ss) for ch in range(3)]
-            n = max(k.shape[-1] for k in ks)
-            ks = [F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in ks]
-            return torch.stack(ks, dim=1)
+            return _stack_centred([half_disc_kernels(self._shape(nodes, ch, r2), ss) for ch in range(3)], dim=1)
 
         return fn
 
