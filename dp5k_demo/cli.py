@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 @click.command("demo")
 @click.argument("out", type=click.Path(path_type=Path), default=Path("demo-out"))
 @click.option("--scale", type=click.Choice(list(SCALES)), default="medium", show_default=True,
-              help="small: a quick look (~1 min); medium: the default demo (~7.5 min on 2 CPU cores, 2.5 GiB); paper: 1680x1120 (hours).")
+              help="small: a quick look (~1 min); medium: the default demo (~8.5 min on 2 CPU cores, 2.5 GiB); paper: 1680x1120 (hours).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of scenes, splits and the hidden effect.")
 @click.option("--force", is_flag=True, help="Rerun every stage (default: reuse stages finished by an earlier run).")
 def demo_command(out: Path, scale: str, seed: int, force: bool) -> None:
