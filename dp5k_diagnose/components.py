@@ -15,7 +15,8 @@ field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodi
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
-                      ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one)
+                      ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one), in
+                      [-0.5, 1]: crosstalk >= 0 only shrinks it; < 0 means swapped views
 focus_offset          CoC recomputed (Eq. 6) at focus distance ``focus_factor`` x F (``focus_offset_mm`` reported)
 psf_profile           radial weight 1 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright centre)
 front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
@@ -152,7 +153,11 @@ class DisparityScale(Component):
         super().__init__()
         self.params = {"disparity_scale": 1.0}
         self.fit_names = ["disparity_scale"]
-        self.bounds = {"disparity_scale": (-0.5, 2.0)}
+        # crosstalk mixes the halves, so it can only shrink disparity: at most 1 (crosstalk >= 0); below 0
+        # the views are swapped (a sign or labelling error). Above 1 it would be a rim-heavy aperture, which
+        # psf_profile and front_back_asymmetry model: unbounded, it took 0.22 of the systematic error on a
+        # front_back_asymmetry set at 1.08 and was named instead.
+        self.bounds = {"disparity_scale": (-0.5, 1.0)}
         self.steps = {"disparity_scale": 0.05}
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:

@@ -151,7 +151,7 @@ def residual(model: BaseModel, s: Sample) -> Tensor:
 
 def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-tile squared-error sums, counts of scored pixels (``Sample.score``) and pair ids over all samples
-    (tiles less than half scored dropped)."""
+    (nearly unscored tiles dropped: :func:`kept_tiles`)."""
     sums, counts, owners = [], [], []
     for s in samples:
         e = residual(model, s)
@@ -167,9 +167,18 @@ def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.nda
     return su[keep], co[keep], own[keep]
 
 
+KEEP_TILE_SHARE = 0.1
+"""A tile counts when at least this share of the best-scored tile's pixels are scored. Statistics are sums
+over a pair's tiles, so partly scored tiles add their pixels' weight and no more; only nearly empty ones,
+whose per-tile log ratios (the < 4 pairs fallback) would be noisy, are dropped. It was 0.5: that dropped
+most tiles of blurred regions, where the depth-edge mask leaves tiles partly scored, and with them most of
+the signal of effects that act on blur (front_back_asymmetry's oracle explained 3 % of the systematic error
+on the kept tiles, 17 % on all)."""
+
+
 def kept_tiles(counts: np.ndarray) -> np.ndarray:
-    """(n,) bool: the tiles the statistics use, those at least half as scored as the best-scored tile."""
-    return counts >= 0.5 * counts.max()
+    """(n,) bool: the tiles the statistics use (:data:`KEEP_TILE_SHARE`)."""
+    return counts >= max(KEEP_TILE_SHARE * float(counts.max()), 1.0)
 
 
 def clustered_delta(base_su: np.ndarray, su: np.ndarray, co: np.ndarray, owners: np.ndarray) -> np.ndarray:

@@ -171,3 +171,48 @@ def test_gain_metrics_count_only_the_chosen_mask() -> None:
 
     m = pair_metrics_by_mask(predict, [s])
     assert np.all(m["predictable"].psnr > 80) and np.all(m["valid"].psnr < 40)
+
+
+def test_tile_statistics_keep_partly_scored_tiles() -> None:
+    """An error confined to a tile a third scored (as tiles of blurred regions are beside the depth-edge mask)
+    counts in full; a tile with one scored pixel in 1024 is left out. With the old rule (tiles at least half
+    as scored as the best one) the first error vanished from every effect size."""
+    H, W = 64, 96
+    sharp = scene(7, n=1, H=H, W=W)
+    b = make_batch(sharp, torch.zeros(1, 1, H, W))
+    model = BaseModel(rim_softness_px=0.0)
+    left, right = model.render(b, field_coords(1, H, W))
+    left = left.clone()
+    left[..., 0:32, 32:64] += 0.1  # error in a partly scored tile
+    left[..., 32:64, 64:96] += 0.1  # error in a nearly empty tile
+    score = torch.zeros(1, 1, H, W, dtype=torch.bool)
+    score[..., :, 0:32] = True
+    score[..., 32:64, 32:64] = True
+    score[..., 0:32, 32:43] = True  # 11 of 32 columns
+    score[..., 40, 70] = True
+    s = Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0",)), field_coords(1, H, W), score)
+    su, co, _ = detect.tile_mse(model, [s], 32)
+    assert co.size == 4  # 3 full tiles + the partly scored one; the one-pixel tile is dropped
+    assert float(su.sum()) == pytest.approx(0.1**2 * 32 * 11 * 3, rel=1e-3)
+
+
+@pytest.mark.parametrize("true_crosstalk", [0.1, -0.1])
+def test_disparity_scale_is_at_most_the_ideal_split(true_crosstalk: float) -> None:
+    """Crosstalk shrinks disparity, and the fit finds how much (0.8 of ideal for 0.1); views with more disparity
+    than the ideal half-aperture split (what a rim-heavy aperture gives) fit at the bound 1, not above it:
+    unbounded, it took the place of front_back_asymmetry on a planted set."""
+    from dp5k_diagnose.components import crosstalk
+
+    H, W = 48, 96
+    sharp = torch.nn.functional.avg_pool2d(scene(8, n=2, H=H, W=W), 3, 1, 1)
+    coc = torch.linspace(-8, 8, W).expand(2, 1, H, W).contiguous()
+    b = make_batch(sharp, coc)
+    base = BaseModel(rim_softness_px=0.0)
+    left, right = crosstalk(*base.render(b, field_coords(2, H, W)), true_crosstalk, true_crosstalk)
+    fit = [Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0", "p1")), field_coords(2, H, W))]
+    model, _, _ = detect.fit_effect(base, "disparity_scale", fit, iters=4)
+    got = model.components[-1].params["disparity_scale"]
+    if true_crosstalk > 0:
+        assert got == pytest.approx(1 - 2 * true_crosstalk, abs=0.03)
+    else:
+        assert got == pytest.approx(1.0, abs=1e-9)

@@ -27,13 +27,10 @@ SMALL_EFFECTS = {"chromatic_defocus"}
 then requires only that no other effect is named and that nothing gets worse (see docs/diagnose.md)."""
 
 
-KNOWN_GAPS = {
-    "front_back_asymmetry": "at 160x96 the planted front/back PSF difference removes only ~8 % of the base model's "
-                            "systematic error on the detection pairs (p ~0.09): below the 0.15 threshold, and its fit "
-                            "is unstable (docs/diagnose.md, detectability)",
-}
-"""Effects diagnose does not yet fully diagnose at this size (docs/diagnose.md). Their cases run as strict xfails: the
-assertions are unchanged, and a case that starts passing fails the suite until its entry is removed."""
+KNOWN_GAPS: dict[str, str] = {}
+"""Effects diagnose does not yet fully diagnose at this size, with the reason (docs/diagnose.md); none at present
+(front_back_asymmetry was one until the statistics kept the partly scored tiles of blurred regions). Their cases
+run as strict xfails: the assertions are unchanged, and a case that starts passing fails the suite until its entry is removed."""
 
 
 def _draw(case: int) -> tuple[str, float]:

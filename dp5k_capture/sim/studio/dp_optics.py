@@ -13,7 +13,7 @@ the aperture whose light lands on the left half of the disc when ``C > 0`` (and 
 ``I_l = H_l * I_s / 2``, ``I_r = H_r * I_s / 2`` (Eq. 2).
 
 Occlusion. The image is sliced into depth layers by signed CoC (uniform 0.5 px steps up to |C| = 4 px,
-then geometric steps of 12 %); each layer's kernel uses the *mean* CoC of its own pixels, so a
+then geometric steps of 8 %); each layer's kernel uses the *mean* CoC of its own pixels, so a
 fronto-parallel plane is blurred with its exact Eq. 6 CoC. Layers are composited front to back with the
 "over" operator on blurred alpha, separately for each aperture half, and normalized by the accumulated
 coverage:
