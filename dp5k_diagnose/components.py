@@ -28,7 +28,9 @@ noise                 signal-dependent white noise var = ``shot_var`` I + ``read
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -241,6 +243,29 @@ class FrontBackAsymmetry(Component):
         self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (-0.45, 6.0), "front_size_factor": (0.5, 2.0)}
         self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03}
 
+    SIDE_MIN_COC_PX = 1.5
+    """A pixel tells the blur's shape on its side of focus from this |CoC| (px) on."""
+    SIDE_MIN_SHARE = 0.02
+    """The share of the fit's scored pixels a side needs before its parameters are fitted."""
+
+    def supported_names(self, samples: Sequence[Any]) -> list[str]:
+        """The parameters the fit samples constrain: the front ones only with enough scored pixels in front of
+        focus (``coc < -1.5 px``), the back one only with enough behind. Without them the fit moved the front
+        size factor to 0.6 and the centre gain to its bound to sharpen near-focus pixels (a 4-pair fit set
+        with no front content), and that extension raised the front error of the detection pairs several-fold."""
+        front = back = total = 0
+        for s in samples:
+            c, m = s.batch.coc_px, s.score
+            front += int(((c < -self.SIDE_MIN_COC_PX) & m).sum())
+            back += int(((c > self.SIDE_MIN_COC_PX) & m).sum())
+            total += int(m.sum())
+        names = []
+        if back >= self.SIDE_MIN_SHARE * max(total, 1):
+            names.append("back_rim_gain")
+        if front >= self.SIDE_MIN_SHARE * max(total, 1):
+            names += ["front_center_gain", "front_size_factor"]
+        return names
+
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         return torch.where(coc_px < 0, coc_px * self.params["front_size_factor"], coc_px)
 
@@ -250,6 +275,13 @@ class FrontBackAsymmetry(Component):
         # 1 + g (1 - q) is proportional to 1 - g/(1+g) q
         a2 = (1 - front) * self.params["back_rim_gain"] + front * (-g / (1 + g))
         return replace(shape, rim2=shape.rim2 + a2)
+
+
+def fittable_names(comp: Component, samples: Sequence[Any]) -> list[str]:
+    """``comp``'s parameters that ``samples`` (diagnose ``Sample``s) can constrain: all of ``fit_names`` unless
+    the component says otherwise (``supported_names``); the rest stay at their neutral values."""
+    supported = getattr(comp, "supported_names", None)
+    return list(comp.fit_names) if supported is None else [n for n in supported(samples) if n in comp.fit_names]
 
 
 def shift_image(img: Tensor, dx_px: float, dy_px: float) -> Tensor:

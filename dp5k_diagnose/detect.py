@@ -37,7 +37,7 @@ from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.progress import progress
 from neural_dp.simulators.base import BaseModel, fit_parameters
 
-from .components import COMPONENTS, Noise
+from .components import COMPONENTS, Noise, fittable_names
 from .data import Sample
 
 log = logging.getLogger(__name__)
@@ -228,7 +228,7 @@ def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, re
     # the base model's own parameters are refitted with every effect: the rim softness fitted without the
     # effect absorbs part of it (on real Canon data the base fit blurs by 1.3 px to soften a 5x too large
     # disparity; refitted with disparity_scale it falls to 0.25 px and the held-out gain rises by 1.3 dB)
-    targets: list[tuple[object, str]] = [(comp, n) for n in comp.fit_names] + [(model, "gain")]
+    targets: list[tuple[object, str]] = [(comp, n) for n in fittable_names(comp, fit)] + [(model, "gain")]
     if refit_rim or comp.changes_psf or not comp.post_only:
         targets.append((model, "rim_softness_px"))
     cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
@@ -437,7 +437,7 @@ def discriminate(findings: list[Finding], base: BaseModel, fit: list[Sample], de
         comp = COMPONENTS[f.effect]()
         comp.params = dict(f.model.components[-1].params)
         model = model.with_component(comp)
-        targets += [(comp, n) for n in comp.fit_names]
+        targets += [(comp, n) for n in fittable_names(comp, fit)]
     targets += [(model, "gain"), (model, "rim_softness_px")]
     fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
     base_su, _, owners = tile_mse(base, det, cfg.tile_px)

@@ -216,3 +216,29 @@ def test_disparity_scale_is_at_most_the_ideal_split(true_crosstalk: float) -> No
         assert got == pytest.approx(1 - 2 * true_crosstalk, abs=0.03)
     else:
         assert got == pytest.approx(1.0, abs=1e-9)
+
+
+def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
+    """Fit data with no blur worth the name in front of focus (|CoC| < 1.5 px there) cannot tell the front
+    blur's shape: the front parameters stay neutral even when near-focus front pixels would pull them (here
+    they are rendered 0.6 x smaller, as a sharp frame that is itself slightly blurred makes them look), while
+    the back rim gain is fitted. With content on both sides all three are fitted."""
+    from dp5k_diagnose.components import COMPONENTS
+
+    H, W = 48, 96
+    sharp = torch.nn.functional.avg_pool2d(scene(9, n=2, H=H, W=W), 3, 1, 1)
+    truth = COMPONENTS["front_back_asymmetry"]()
+    truth.params.update({"back_rim_gain": 1.0, "front_center_gain": 0.0, "front_size_factor": 0.6})
+    fitted = {}
+    for lo in (-1.4, -8.0):
+        coc = torch.linspace(lo, 8.0, W).expand(2, 1, H, W).contiguous()
+        b = make_batch(sharp, coc)
+        left, right = BaseModel(0.0, 1.0, [truth]).render(b, field_coords(2, H, W))
+        fit = [Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0", "p1")), field_coords(2, H, W))]
+        comp = COMPONENTS["front_back_asymmetry"]()
+        assert comp.supported_names(fit) == (["back_rim_gain"] if lo > -1.5 else ["back_rim_gain", "front_center_gain", "front_size_factor"])
+        model, _, _ = detect.fit_effect(BaseModel(rim_softness_px=0.0), "front_back_asymmetry", fit, iters=4)
+        fitted[lo] = model.components[-1].params
+    assert fitted[-1.4]["front_size_factor"] == 1.0 and fitted[-1.4]["front_center_gain"] == 0.0
+    assert fitted[-1.4]["back_rim_gain"] == pytest.approx(1.0, abs=0.3)
+    assert fitted[-8.0]["front_size_factor"] < 0.85  # moves toward 0.6 (size and centre gain trade off in 4 iterations)

@@ -137,3 +137,33 @@ def test_full_pipeline_views_add_up_in_a_studio_scene() -> None:
     dp = st.render_views(1, 1.8, 2.0, full=True)  # toed-in camera: the plane spans several depth bins
     err = np.abs(dp.left + dp.right - dp.full)
     assert err.max() < 2e-3 and err.mean() < 2e-5
+
+
+@pytest.mark.parametrize("coc_range", [(-1.0, -3.0), (1.0, 3.0), (-4.0, -5.7)])
+def test_slanted_plane_matches_a_per_pixel_superposition(coc_range: tuple[float, float]) -> None:
+    """A slanted plane (CoC varying along x, no occlusion) against the exact image of it: every pixel spreads
+    its own half-disc PSF (coverage-normalised, as the renderer). With one CoC bin per pixel the blur was a
+    staircase, 2-4e-3 rms off, as large as a planted PSF-shape effect; split between two bins it is < 6e-4."""
+    H, W, P = 40, 96, 10
+    yy, xx = np.mgrid[0:H, 0:W]
+    img = np.where((xx // 6 + yy // 6) % 2 == 0, 0.8, 0.2).astype(np.float32)
+    lz = lens(2.8, 2000.0)
+    zs = np.geomspace(500.0, 50000.0, 200000)
+    cz = coc_channels_px(zs[None, :], lz)[0, :, 1]  # increasing with depth
+    depth = np.repeat(np.interp(np.linspace(*coc_range, W), cz, zs)[None, :], H, 0)
+    out = render_dp(np.repeat(img[:, :, None], 3, 2), depth, lz)
+    c = np.pad(out.coc_px[:, :, 1], P, mode="symmetric")
+    src = np.pad(img, P, mode="symmetric")
+    acc = np.zeros_like(src)
+    cov = np.zeros_like(src)
+    for x in range(src.shape[1]):  # the plane's CoC depends on x only: one kernel per column
+        k = left_kernel(float(c[0, x]))
+        h = k.shape[0] // 2
+        if x - h < 0 or x + h >= src.shape[1]:
+            continue
+        for y in range(h, src.shape[0] - h):
+            acc[y - h : y + h + 1, x - h : x + h + 1] += k * src[y, x]
+            cov[y - h : y + h + 1, x - h : x + h + 1] += k
+    truth = 0.5 * acc[P:-P, P:-P] / cov[P:-P, P:-P]
+    err = (out.left[:, :, 1] - truth)[8:-8, 8:-8]
+    assert float(np.sqrt(np.mean(err**2))) < 6e-4

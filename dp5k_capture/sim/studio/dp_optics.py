@@ -13,8 +13,9 @@ the aperture whose light lands on the left half of the disc when ``C > 0`` (and 
 ``I_l = H_l * I_s / 2``, ``I_r = H_r * I_s / 2`` (Eq. 2).
 
 Occlusion. The image is sliced into depth layers by signed CoC (uniform 0.5 px steps up to |C| = 4 px,
-then geometric steps of 8 %); each layer's kernel uses the *mean* CoC of its own pixels, so a
-fronto-parallel plane is blurred with its exact Eq. 6 CoC. Layers are composited front to back with the
+then geometric steps of 8 %); each pixel's light is split between the two bins that bracket its CoC
+(linear in the bin coordinate) and each bin is blurred with its own CoC, so blur varies continuously along
+a slanted surface (within 1-5e-4 rms of an exact per-pixel superposition). Layers are composited front to back with the
 "over" operator on blurred alpha, separately for each aperture half, and normalized by the accumulated
 coverage:
 
@@ -224,13 +225,31 @@ def _commit(T: F32, group: list[tuple]) -> None:
     T[y0:y1, x0:x1] *= np.clip(1.0 - total, 0.0, 1.0)
 
 
-def _layer_index(key: NDArray[np.floating]) -> NDArray[np.int32]:
-    a = np.abs(key)
+def _layer_coord(key: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Continuous signed bin coordinate of a signed CoC (px): ``|C| / 0.5`` up to 4 px, then one unit per 8 %
+    (``SMALL_STEP_PX``, ``SMALL_LIMIT_PX``, ``GEOM_STEP``); bin ``k`` sits at :func:`_layer_coc` ``(k)``."""
+    a = np.abs(np.asarray(key, dtype=np.float64))
     n_small = SMALL_LIMIT_PX / SMALL_STEP_PX
     with np.errstate(divide="ignore"):
         big = n_small + np.log(np.maximum(a, 1e-9) / SMALL_LIMIT_PX) / math.log(1.0 + GEOM_STEP)
-    idx = np.where(a <= SMALL_LIMIT_PX, a / SMALL_STEP_PX, big)
-    return (np.sign(key) * np.rint(idx)).astype(np.int32)
+    return np.sign(key) * np.where(a <= SMALL_LIMIT_PX, a / SMALL_STEP_PX, big)
+
+
+def _layer_coc(k: NDArray[np.integer]) -> NDArray[np.float64]:
+    """Signed CoC (px) of bin ``k``, the inverse of :func:`_layer_coord` at integers."""
+    a = np.abs(k).astype(np.float64)
+    n_small = SMALL_LIMIT_PX / SMALL_STEP_PX
+    return np.sign(k) * np.where(a <= n_small, a * SMALL_STEP_PX, SMALL_LIMIT_PX * (1.0 + GEOM_STEP) ** (a - n_small))
+
+
+def _bin_split(key: NDArray[np.floating]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """The lower of the two bins that bracket each signed CoC ``c`` and the weight of the upper one: a pixel's
+    light goes ``1 - t`` to bin ``k`` and ``t`` to bin ``k + 1``, ``t = (c - c_k) / (c_{k+1} - c_k)``. Linear
+    in ``c``, so the blend's DP centroid (proportional to ``c`` for each disc) is exact."""
+    c = np.asarray(key, dtype=np.float64)
+    k = np.floor(_layer_coord(c)).astype(np.int64)
+    c0, c1 = _layer_coc(k), _layer_coc(k + 1)
+    return k, np.clip((c - c0) / (c1 - c0), 0.0, 1.0)
 
 
 @dataclass
@@ -290,10 +309,11 @@ def render_dp(
     z = pad2(z)
     coc = pad2(coc_out)
     H, W = img.shape[:2]
-    lid = _layer_index(coc[:, :, 1])
     zsort = np.where(np.isfinite(z) & (z > 0), z, lens.focus_distance_mm)
     # hidden surfaces (second hits behind the visible one), when the caller knows them
     h_img = h_flat = None
+    n_front = H * W
+    src_z, src_c = zsort.ravel(), coc.reshape(-1, 3)
     if hidden is not None:
         h_rad, h_depth = hidden
         if np.shape(h_rad) != (H - 2 * P, W - 2 * P, 3) or np.shape(h_depth) != (H - 2 * P, W - 2 * P):
@@ -301,7 +321,6 @@ def render_dp(
         hz = pad2(np.asarray(h_depth, dtype=np.float64))
         ok = np.isfinite(hz) & (hz > 0)
         h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
-        h_lid = _layer_index(h_coc[:, :, 1])
         cf, chd = coc[:, :, 1], h_coc[:, :, 1]
         ok &= (hz > zsort) & ((chd - cf) > np.maximum(OCCLUDE_MIN_PX, OCCLUDE_REL * np.maximum(np.abs(cf), np.abs(chd))))
         # a hidden surface can only show within the front surface's blur radius of its silhouette
@@ -316,21 +335,31 @@ def render_dp(
         ok &= dist <= np.abs(cf) / 2.0 + 2.0
         h_flat = np.nonzero(ok.ravel())[0]
         h_img = pad2(np.asarray(h_rad, dtype=np.float32))
-        all_lid = np.concatenate([lid.ravel(), h_lid.ravel()[h_flat]])
-        all_z = np.concatenate([zsort.ravel(), hz.ravel()[h_flat]])
-        all_c = np.concatenate([coc.reshape(-1, 3), h_coc.reshape(-1, 3)[h_flat]])
-    else:
-        all_lid, all_z, all_c = lid.ravel(), zsort.ravel(), coc.reshape(-1, 3)
+        # sources: front pixels 0 .. n_front - 1, then hidden ones (n_front + i is hidden pixel h_flat[i])
+        src_z = np.concatenate([src_z, hz.ravel()[h_flat]])
+        src_c = np.concatenate([src_c, h_coc.reshape(-1, 3)[h_flat]])
+    # each source's light is split between the two CoC bins that bracket it, so blur varies continuously
+    # along a slanted surface (one bin per pixel made its blur a staircase: 2-4e-3 rms error against an exact
+    # per-pixel superposition on slanted planes, as large as the planted effects; split, 1e-4)
+    k_lo, t_hi = _bin_split(src_c[:, 1])
+    all_lid = np.concatenate([k_lo, k_lo + 1])
+    all_w = np.concatenate([1.0 - t_hi, t_hi])
+    all_src = np.tile(np.arange(src_z.size), 2)
+    keep = all_w > 1e-6
+    all_lid, all_w, all_src = all_lid[keep], all_w[keep], all_src[keep]
+    all_z = src_z[all_src]
+    dc = src_c[all_src] - src_c[all_src, 1:2]  # per-channel CoC relative to green (chromatic_defocus)
     lo = int(all_lid.min())
     present = np.bincount(all_lid - lo)
     lut = np.cumsum(present > 0) - 1
     inv_all = lut[all_lid - lo].astype(np.int16 if lut[-1] < 32000 else np.int32)  # int16: numpy radix-sorts
     counts = present[present > 0]
     ids = np.nonzero(present)[0] + lo
-    zmean = np.bincount(inv_all, weights=all_z) / counts
-    cmean = np.stack([np.bincount(inv_all, weights=all_c[:, ch].astype(np.float64)) / counts for ch in range(3)], 1)
-    # flat pixel indices of every layer (front pixels, then hidden ones), grouped once by sorting
-    n_front = H * W
+    wsum = np.maximum(np.bincount(inv_all, weights=all_w), 1e-12)
+    zmean = np.bincount(inv_all, weights=all_w * all_z) / wsum
+    node = _layer_coc(ids)
+    cmean = np.stack([node + np.bincount(inv_all, weights=all_w * dc[:, ch]) / wsum for ch in range(3)], 1)
+    # source entries of every layer, grouped once by sorting
     order = np.argsort(inv_all, kind="stable")
     starts = np.concatenate([[0], np.cumsum(counts)])
     halves = ["L", "R"] + (["F"] if full else [])
@@ -342,9 +371,12 @@ def render_dp(
     pending: dict[str, list] = {}
     for li in np.argsort(zmean, kind="stable"):
         members = order[starts[li] : starts[li + 1]]
-        is_front = members < n_front
-        front_flat = members[is_front]
-        hidden_flat = h_flat[members[~is_front] - n_front] if h_flat is not None else members[:0]
+        src = all_src[members]
+        wt = all_w[members].astype(np.float32)
+        is_front = src < n_front
+        front_flat, w_front = src[is_front], wt[is_front]
+        hidden_flat = h_flat[src[~is_front] - n_front] if h_flat is not None else src[:0]
+        w_hidden = wt[~is_front]
         flat_all = np.concatenate([front_flat, hidden_flat])
         rr, cc = flat_all // W, flat_all % W
         c3 = cmean[li]
@@ -359,12 +391,12 @@ def render_dp(
         alpha = np.zeros((h, w), np.float32)
         color = np.zeros((h, w, 3), np.float32)
         fr, fc = front_flat // W - y0, front_flat % W - x0
-        alpha[fr, fc] = 1.0
-        color[fr, fc] = img[front_flat // W, front_flat % W]
-        if hidden_flat.size:
+        alpha[fr, fc] = w_front
+        color[fr, fc] = w_front[:, None] * img[front_flat // W, front_flat % W]
+        if hidden_flat.size:  # a hidden surface is >= 2 px of CoC behind the front one: never in its bins
             hr, hc = hidden_flat // W - y0, hidden_flat % W - x0
-            alpha[hr, hc] = 1.0
-            color[hr, hc] = h_img[hidden_flat // W, hidden_flat % W]
+            alpha[hr, hc] = w_hidden
+            color[hr, hc] = w_hidden[:, None] * h_img[hidden_flat // W, hidden_flat % W]
         if s > 1:
             hp, wp = -(-h // s) * s, -(-w // s) * s
             alpha_p = np.zeros((hp, wp), np.float32)
