@@ -14,7 +14,7 @@ the aperture whose light lands on the left half of the disc when ``C > 0`` (and 
 
 Occlusion. The image is sliced into depth layers by signed CoC (uniform 0.5 px steps up to |C| = 4 px,
 then geometric steps of 8 %); each pixel's light is split between the two bins that bracket its CoC
-(linear in the bin coordinate) and each bin is blurred with its own CoC, so blur varies continuously along
+(weights linear in C) and each bin is blurred with its own CoC, so blur varies continuously along
 a slanted surface (within 1-5e-4 rms of an exact per-pixel superposition). Layers are composited front to back with the
 "over" operator on blurred alpha, separately for each aperture half, and normalized by the accumulated
 coverage:
