@@ -174,7 +174,7 @@ _KERNEL_CACHE_SIZE = 4096
 
 
 def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
-    r"""Left-view PSFs of K nodes, each normalised to sum 1 (see :func:`_half_disc_group` for the maths).
+    r"""Left-view PSFs of K nodes, each normalised to sum 1 (see :func:`_half_disc_kernel` for the maths).
 
     Each node's kernel is built at its own size (so the many small kernels near focus are cheap) and kept
     in a small LRU cache keyed by its shape parameters: a fit renders the same nodes for every batch.
@@ -192,11 +192,11 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split)]
     kernels = []
     for k in range(K):
-        key = (str(coc.device), supersample) + tuple(c[k] for c in cols)
+        node = tuple(c[k] for c in cols)
+        key = (str(coc.device), supersample) + node
         ker = _KERNEL_CACHE.get(key)
         if ker is None:
-            one = PSFShape(*(torch.tensor([c[k]], device=coc.device, dtype=torch.float32) for c in cols))
-            ker = _half_disc_group(one, supersample)[0]
+            ker = _half_disc_kernel(*node, supersample=supersample, device=coc.device)
             _KERNEL_CACHE[key] = ker
             if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
                 _KERNEL_CACHE.popitem(last=False)
@@ -212,10 +212,11 @@ def _stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
     return torch.stack([F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in kernels], dim=dim)
 
 
-def _half_disc_group(shape: PSFShape, supersample: int = 4) -> Tensor:
-    r"""Left-view PSFs of K nodes, each normalised to sum 1.
+def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
+                      supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
+    r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
 
-    For node k with radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
+    With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
 
     .. math::
         D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
@@ -230,38 +231,31 @@ def _half_disc_group(shape: PSFShape, supersample: int = 4) -> Tensor:
     ``c = 0`` is exactly the identity. ``supersample`` is a lower bound on ``ss``.
 
     Returns:
-        (K, n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
+        (n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
     """
-    coc = shape.coc_px
-    K = coc.shape[0]
-    dev = coc.device
-
-    def per_node(t: Tensor) -> Tensor:
-        return t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)
-
-    soft, rim2, rim4, split, scale = (per_node(t) for t in (shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.scale))
-    R = coc.abs() * scale / 2  # (K,) px
+    coc, scale_t, soft, a2, a4, split_t = (torch.tensor(v, device=device, dtype=torch.float32)
+                                            for v in (coc_px, scale, softness_px, rim2, rim4, split))
+    R = coc.abs() * scale_t / 2  # px
     sigma = soft.clamp(min=0.0)
-    half = int(math.ceil(float((R + 3 * sigma).max()))) + 2
+    half = int(math.ceil(float(R + 3 * sigma))) + 2
     n = 2 * half + 1
     ss = max(_fine_supersample(n), supersample | 1)
-    fine = (torch.arange(n * ss, device=dev, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
+    fine = (torch.arange(n * ss, device=device, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
     fy, fx = torch.meshgrid(fine, fine, indexing="ij")
-    rho = torch.sqrt(fx**2 + fy**2)[None]  # (1, N, N)
+    rho = torch.sqrt(fx**2 + fy**2)  # (N, N)
     Reff = R.clamp(min=0.5 / ss)
-    disc = ((Reff[:, None, None] - rho) * ss + 0.5).clamp(0.0, 1.0)
-    q = (rho / Reff[:, None, None]).clamp(max=1.0) ** 2
-    prof_w = (1.0 + rim2[:, None, None] * q + rim4[:, None, None] * q * q).clamp(min=0.0)
-    sign = torch.where(coc >= 0, 1.0, -1.0)[:, None, None]
-    left_half = (fx[None] * sign < 0).float() + 0.5 * (fx[None] == 0).float()
-    sk = (split * R / Reff)[:, None, None]  # a disc below the fine grid's resolution keeps its exact centroid
-    w = disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half)
-    w = torch.stack([_soften(w[k], float(sigma[k]) * ss) for k in range(K)])
-    tent = (1.0 - torch.arange(-(ss - 1), ss, device=dev, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
+    disc = ((Reff - rho) * ss + 0.5).clamp(0.0, 1.0)
+    q = (rho / Reff).clamp(max=1.0) ** 2
+    prof_w = (1.0 + a2 * q + a4 * q * q).clamp(min=0.0)
+    sign = 1.0 if coc_px >= 0 else -1.0
+    left_half = (fx * sign < 0).float() + 0.5 * (fx == 0).float()
+    sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
+    w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
+    tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
     p = (ss - 1) // 2
-    w = F.pad(w[:, None], (p, p, p, p))
-    w = F.conv2d(F.conv2d(w, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[:, 0]
-    return w / w.sum(dim=(1, 2), keepdim=True).clamp(min=1e-12)
+    w = F.pad(w[None, None], (p, p, p, p))
+    w = F.conv2d(F.conv2d(w, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[0, 0]
+    return w / w.sum().clamp(min=1e-12)
 
 
 def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
