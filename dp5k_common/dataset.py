@@ -50,6 +50,10 @@ def _check_pair_id(pair_id: str, where: str) -> None:
         )
 
 
+SHARP_F_NUMBER = 22.0
+"""The f-number of a pair's ``sharp`` image when params.json does not say (``sharp_f_number``)."""
+
+
 @dataclass(frozen=True)
 class PairParams:
     """Imaging parameters of one pair (``params.json``).
@@ -89,6 +93,12 @@ class PairParams:
         "focus_point_px",
         "image_size",
     )
+
+    @property
+    def sharp_f_number(self) -> float:
+        """The f-number of ``sharp`` (optional key ``sharp_f_number``; format v1 default 22; 0 = an
+        all-in-focus image, e.g. the radiance a synthetic pair was rendered from)."""
+        return float(self.extra.get("sharp_f_number", SHARP_F_NUMBER))
 
     def to_json(self) -> dict[str, Any]:
         """The params.json object (required keys first, then extras)."""
@@ -156,6 +166,8 @@ class PairParams:
 
         focus_point = pair_of("focus_point_px", float)
         size = pair_of("image_size", int)
+        if "sharp_f_number" in obj and number("sharp_f_number", positive=False) < 0:
+            raise DatasetFormatError(f"'sharp_f_number' must be >= 0 (0 = all-in-focus), got {obj['sharp_f_number']}", where=where)
         extra = {k: v for k, v in obj.items() if k not in cls.REQUIRED}
         return cls(
             pair_id=obj["pair_id"],

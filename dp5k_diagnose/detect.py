@@ -128,7 +128,7 @@ def _finite(x: float, default: float = 0.0) -> float:
 
 
 def copy_base(base: BaseModel) -> BaseModel:
-    return BaseModel(base.params["rim_softness_px"], base.params["gain"], [], base.config)
+    return BaseModel(base.params["rim_softness_px"], base.params["gain"], [], base.config, base.sharp_deblur_iters)
 
 
 def tile_sums(x: Tensor, mask: Tensor, tile: int) -> tuple[Tensor, Tensor]:

@@ -363,7 +363,7 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
                 pair_id=pid, scene=session.scene, camera=cam, f_number=float(N), focus_distance_mm=float(F_mm),
                 focal_length_mm=float(f_thin), pixel_pitch_mm=float(pitch_mm),
                 focus_point_px=(float(fp_out[0]), float(fp_out[1])), image_size=(int(out_size[0]), int(out_size[1])),
-                extra={"exposure": {"sharp_gain": ratio}, "reprojection_error_px": st.rms_px,
+                extra={"exposure": {"sharp_gain": ratio}, "sharp_f_number": 22.0, "reprojection_error_px": st.rms_px,
                        "depth_coverage": cam_rep["depth_coverage"], "aux_view": session.aux_view,
                        "source": "dp5k process"},
             )

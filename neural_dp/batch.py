@@ -29,6 +29,8 @@ class DPBatch:
         left: (B, 3, H, W) measured left view, or None.
         right: (B, 3, H, W) measured right view, or None.
         pair_ids: the pairs' ids, length B.
+        sharp_f_number: (B,) float, the f-number of ``sharp`` (params.json ``sharp_f_number``, format v1
+            default 22; 0 = an all-in-focus image), or None (all 22).
     """
 
     sharp: Tensor
@@ -43,6 +45,7 @@ class DPBatch:
     left: Tensor | None = None
     right: Tensor | None = None
     pair_ids: tuple[str, ...] = ()
+    sharp_f_number: Tensor | None = None
 
     @classmethod
     def from_pairs(cls, pairs: Sequence[Pair], device: torch.device | str = "cpu") -> DPBatch:
@@ -64,6 +67,7 @@ class DPBatch:
             left=torch.stack([img(p.left) for p in pairs]).to(device),
             right=torch.stack([img(p.right) for p in pairs]).to(device),
             pair_ids=tuple(p.pair_id for p in pairs),
+            sharp_f_number=torch.tensor([p.params.sharp_f_number for p in pairs], dtype=torch.float32, device=device),
         )
 
     def to(self, device: torch.device | str) -> DPBatch:

@@ -280,7 +280,7 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
             params = PairParams(
                 pair_id=pair_id(frame.name), scene=frame.name, camera="synth", f_number=n, focus_distance_mm=focus,
                 focal_length_mm=f_thin, pixel_pitch_mm=pitch, focus_point_px=point, image_size=(W, H),
-                extra={"synthetic": True, "simulator": cfg.simulator, "source_frame": frame.name,
+                extra={"synthetic": True, "sharp_f_number": 0.0, "simulator": cfg.simulator, "source_frame": frame.name,
                        "pinhole_fx_px": frame.fx_px, "sensor_scale": scale, **cfg.extra},
             )
             pending.append((frame, params, coc))

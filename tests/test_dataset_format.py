@@ -162,6 +162,8 @@ def test_coc_nan_where_depth_valid(ds: Path) -> None:
         ("image_size", [24.5, 16], "positive integers"),
         ("pair_id", "other", "folder is"),
         ("scene", "", "non-empty string"),
+        ("sharp_f_number", -22.0, "must be >= 0"),
+        ("sharp_f_number", "f/22", "must be a number"),
     ],
 )
 def test_bad_params(ds: Path, key: str, value, match: str) -> None:

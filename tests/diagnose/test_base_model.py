@@ -149,3 +149,49 @@ def test_fit_parameters_rejects_nothing_and_keeps_bounds() -> None:
     m.bounds["gain"] = (0.1, 1.5)
     fit_parameters(m, [(m, "gain")], [make_batch(sharp, coc, l, r)])
     assert m.params["gain"] <= 1.5
+
+
+def _studio_slanted_plane(coc_from: float, coc_to: float, f_number: float):
+    """A noise-free studio render of a checkerboard plane whose CoC runs ``coc_from..coc_to`` px across x,
+    with its sharp frame rendered at f/22 as format v1 says."""
+    from dp5k_capture.sim.studio.dataset import pair_from_rgbd
+    from dp5k_capture.sim.studio.dp_optics import LensSetting, coc_channels_px
+
+    H, W, f, F, pitch = 48, 112, 50.0, 1500.0, 36.0 / 160
+    yy, xx = np.mgrid[0:H, 0:W]
+    radiance = np.where(((xx // 6) + (yy // 6)) % 2 == 0, 0.8, 0.2).astype(np.float32)[:, :, None].repeat(3, 2)
+    zs = np.linspace(300.0, 2e5, 400000)
+    coc_of_z = coc_channels_px(zs[None, :], LensSetting(f, f_number, F, pitch))[0, :, 1]
+    depth = np.repeat(np.interp(np.linspace(coc_from, coc_to, W), coc_of_z, zs)[None, :], H, 0)
+    rp = pair_from_rgbd(radiance, depth, f_number=f_number, focus_distance_mm=F, focal_length_mm=f, pixel_pitch_mm=pitch,
+                        noise=False, sharp_is_pinhole=True)
+    img = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None]  # noqa: E731
+    batch = make_batch(img(rp.sharp), torch.from_numpy(rp.coc_px)[None, None].float(), img(rp.left), img(rp.right))
+    batch.f_number = torch.tensor([f_number])
+    batch.sharp_f_number = torch.tensor([float(rp.extra["sharp_f_number"])])
+    return batch
+
+
+@pytest.mark.parametrize("coc_range", [(-8.0, -2.0), (2.0, 8.0)])
+def test_sharp_frames_own_f22_blur_is_undone(coc_range: tuple[float, float]) -> None:
+    """Rendering from the f/22 frame as if it were a pinhole image leaves its own blur (a disc 2.8/22 of the
+    DP disc) in both views; undoing it brings the base model to a few times closer to the studio."""
+    batch = _studio_slanted_plane(*coc_range, f_number=2.8)
+    assert float(batch.sharp_f_number[0]) == 22.0
+
+    def error(iters: int) -> float:
+        left, right = BaseModel(0.0, 1.0, sharp_deblur_iters=iters).render(batch)
+        crop = (slice(None), slice(None), slice(16, -16), slice(16, -16))
+        return float(((left - batch.left)[crop] ** 2 + (right - batch.right)[crop] ** 2).sum().sqrt())
+
+    pinhole, undone = error(0), error(2)
+    assert undone < 0.35 * pinhole, (pinhole, undone)
+
+
+def test_an_all_in_focus_sharp_image_is_not_deblurred() -> None:
+    """``sharp_f_number = 0`` marks a sharp image that is the radiance itself (synthetic pairs)."""
+    batch = _studio_slanted_plane(2.0, 8.0, f_number=2.8)
+    batch.sharp_f_number = torch.zeros(1)
+    a = BaseModel(0.0, 1.0, sharp_deblur_iters=2).render(batch)
+    b = BaseModel(0.0, 1.0, sharp_deblur_iters=0).render(batch)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])

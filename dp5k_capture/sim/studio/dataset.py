@@ -154,6 +154,7 @@ def pair_from_rgbd(
     extra = {
         "effects": eff.to_json((W, H)),
         "true_focus_distance_mm": F_true,
+        "sharp_f_number": SHARP_F_NUMBER if sharp_is_pinhole else 0.0,  # 0: sharp is the input radiance
         "noise": {"shot_var": NOISE_SHOT * nz["shot_var_factor"], "read_sigma": NOISE_READ * nz["read_sigma_factor"]} if noise else None,
     }
     return RenderedPair(np.clip(sharp_out, 0, 1).astype(np.float32), np.clip(left, 0, 1), np.clip(right, 0, 1),
