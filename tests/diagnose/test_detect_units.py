@@ -242,3 +242,30 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
     assert fitted[-1.4]["front_size_factor"] == 1.0 and fitted[-1.4]["front_center_gain"] == 0.0
     assert fitted[-1.4]["back_rim_gain"] == pytest.approx(1.0, abs=0.3)
     assert fitted[-8.0]["front_size_factor"] < 0.85  # moves toward 0.6 (size and centre gain trade off in 4 iterations)
+
+
+def test_crops_carry_the_sharp_context_their_blur_needs() -> None:
+    """A 96 px crop of a 320 px frame whose discs are 60 px wide: the crop is cut with enough sharp context
+    around it that its scored pixels are predictable (their blur stays inside the cut), and only the 96 px
+    core is scored. Without the context no core pixel is predictable and the fallback scored them all."""
+    from dp5k_common.dataset import Pair, PairParams
+    from dp5k_diagnose.data import crop_samples
+
+    H, W = 192, 320
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.2, 0.8, (H, W, 3)).astype(np.float32)
+    coc = np.full((H, W), 60.0, np.float32)
+    params = PairParams("p", "s", "cam0", 1.8, 1000.0, 50.0, 36.0 / W, (W / 2, H / 2), (W, H), {"sharp_f_number": 20.0})
+    pair = Pair(params, img, img / 2, img / 2, np.full((H, W), 3000.0, np.float32), coc)
+    samples = crop_samples([pair], 96, 3, np.random.default_rng(1))
+    for s in samples:
+        assert s.batch.sharp_f_number is not None and bool((s.batch.sharp_f_number == 20.0).all())
+        h, w = s.score.shape[-2:]
+        assert h > 96 and w > 96  # context was added
+        for score in s.score[:, 0]:
+            ys, xs = torch.nonzero(score, as_tuple=True)
+            assert ys.numel() > 0.5 * 96 * 96  # most of the core is predictable
+            assert int(ys.max() - ys.min()) < 96 and int(xs.max() - xs.min()) < 96  # only the core is scored
+            reach = 60.0 / 2
+            dist = torch.minimum(torch.minimum(ys, h - 1 - ys), torch.minimum(xs, w - 1 - xs)).float()
+            assert bool((dist >= reach).all())  # every scored pixel's blur lies inside the cut
