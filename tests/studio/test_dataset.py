@@ -33,6 +33,7 @@ def test_dataset_is_valid_and_split_by_scene(dataset: Path) -> None:
         assert pid == f"{p.params.scene}_{p.params.camera}_f{p.params.f_number:g}"
         assert p.params.image_size == (96, 64) and p.params.pixel_pitch_mm == pytest.approx(36.0 / 96)
         assert p.valid.all()
+        assert p.params.extra["sharp_f_number"] == 22.0  # every pair of a scene and camera shares the f/22 render
 
 
 def test_pairs_follow_eq6_eq2_and_record_the_planted_effects(dataset: Path) -> None:
@@ -101,4 +102,5 @@ def test_rerender_an_rgbd_dataset_with_effects(dataset: Path, tmp_path: Path) ->
         assert np.array_equal(a.sharp, b.sharp) and np.array_equal(a.depth_mm, b.depth_mm)
         assert np.allclose(a.coc_px, b.coc_px, atol=1e-4)
         assert set(b.params.extra["effects"]) == {"lr_gain_imbalance"}
+        assert b.params.sharp_f_number == 0.0  # the source's sharp image was the radiance these views came from
         assert b.left.mean() / b.right.mean() == pytest.approx(1.2, abs=0.05)

@@ -233,7 +233,8 @@ def make_dataset(
                 sharp = rp.sharp
             pair_id = f"{scene.name}_{cam.name}_f{N:g}"
             params = PairParams(pair_id, scene.name, cam.name, float(N), F_rec, cam.focal_length_mm, cam.pixel_pitch_mm,
-                                (fx, fy), (W, H), {**rp.extra, "source": "studio", "scene_seed": scene.seed})
+                                (fx, fy), (W, H), {**rp.extra, "sharp_f_number": SHARP_F_NUMBER,  # every pair shares the f/22 render
+                                                   "source": "studio", "scene_seed": scene.seed})
             write_pair(out, params, sharp=sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm, coc_px=rp.coc_px,
                        overwrite=overwrite)
             scene_ids.setdefault(scene.name, []).append(pair_id)
