@@ -361,6 +361,9 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
             text = EXPLAIN[name].format(**params)
         except (KeyError, ValueError):
             text = name
+        held = [n for n in comp.fit_names if (comp, n) not in fitted[name][1]]
+        if held:
+            text += f" ({', '.join(held)} not fitted: too little of the fit data is where they act; held neutral)"
         log.info("%s: effect %.4f t %.2f p %.2g params %s", name, effect, t, p, params)
         findings.append(Finding(name, t, p, effect, detected, params, text, model, su))
     findings.sort(key=lambda f: (not f.detected, -f.rank_score))

@@ -239,6 +239,9 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
         assert comp.supported_names(fit) == (["back_rim_gain"] if lo > -1.5 else ["back_rim_gain", "front_center_gain", "front_size_factor"])
         model, _, _ = detect.fit_effect(BaseModel(rim_softness_px=0.0), "front_back_asymmetry", fit, iters=4)
         fitted[lo] = model.components[-1].params
+        finding = detect.test_effects(BaseModel(rim_softness_px=0.0), fit, fit, DetectConfig(lm_iters=1), ("front_back_asymmetry",))[0]
+        held_said = "front_center_gain, front_size_factor not fitted" in finding.explanation
+        assert held_said == (lo > -1.5), finding.explanation  # the report says which parameters were held neutral
     assert fitted[-1.4]["front_size_factor"] == 1.0 and fitted[-1.4]["front_center_gain"] == 0.0
     assert fitted[-1.4]["back_rim_gain"] == pytest.approx(1.0, abs=0.3)
     assert fitted[-8.0]["front_size_factor"] < 0.85  # moves toward 0.6 (size and centre gain trade off in 4 iterations)
