@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import astuple, dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -457,9 +457,9 @@ def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, spectra: 
     return out
 
 
-
-_RADIANCE_CACHE: "OrderedDict[tuple[int, int, int], tuple[Tensor, Tensor, Tensor]]" = OrderedDict()
-_RADIANCE_CACHE_SIZE = 256
+_RADIANCE_CACHE: "OrderedDict[tuple, tuple[Tensor, Tensor, Tensor, Tensor | None]]" = OrderedDict()
+_RADIANCE_CACHE_BYTES = 512 * 2**20
+"""The cache keeps each entry's sharp, CoC and radiance tensors alive; it is bounded by their total size."""
 
 
 def sharp_blur_coc_px(batch: DPBatch) -> Tensor:
@@ -492,19 +492,20 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     layered blur the model renders with (full disc). Van Cittert iterations undo it:
     :math:`x_0 = s,\ x_{k+1} = x_k + (s - B x_k)`. At f/2.8 the sharp frame's disc is 13 % of the DP
     capture's; treating the frame as a pinhole image leaves a rim-softening error 3-25 x the renderer's own
-    on a slanted plane (docs/simulators.md); one iteration removes about 90 % of it, two reach the
+    on a slanted plane (docs/diagnose.md, base model); one iteration removes about 90 % of it, two reach the
     renderer's floor. Discs under 2.4 px keep :math:`|1 - \hat B| < 1` below Nyquist, so the iteration
     converges where the DP blur lets detail through. ``iters = 0`` returns ``s``. Results are cached per
-    (sharp, coc) tensor pair: fits render the same batch many times.
+    (sharp, coc, sharp f-numbers) tensors, iterations and discretisation: fits render the same batch many
+    times (:data:`_RADIANCE_CACHE_BYTES` bounds the cache).
     """
     if iters <= 0 or batch.sharp_f_number is not None and bool((batch.sharp_f_number <= 0).all()):
         return batch.sharp.float()
-    key = (id(batch.sharp), id(batch.coc_px), int(iters))
+    cfg = config or RenderConfig()
+    key = (id(batch.sharp), id(batch.coc_px), id(batch.sharp_f_number), int(iters), astuple(cfg))
     hit = _RADIANCE_CACHE.get(key)
-    if hit is not None and hit[0] is batch.sharp and hit[1] is batch.coc_px:
+    if hit is not None and hit[0] is batch.sharp and hit[1] is batch.coc_px and hit[3] is batch.sharp_f_number:
         _RADIANCE_CACHE.move_to_end(key)
         return hit[2]
-    cfg = config or RenderConfig()
     s = batch.sharp.float()
     coc_s = sharp_blur_coc_px(batch)
 
@@ -514,8 +515,9 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     x = s
     for _ in range(iters):
         x = x + (s - blur(x))
-    _RADIANCE_CACHE[key] = (batch.sharp, batch.coc_px, x)
-    if len(_RADIANCE_CACHE) > _RADIANCE_CACHE_SIZE:
+    _RADIANCE_CACHE[key] = (batch.sharp, batch.coc_px, x, batch.sharp_f_number)
+    size = lambda e: sum(t.numel() * t.element_size() for t in e if isinstance(t, Tensor))  # noqa: E731
+    while len(_RADIANCE_CACHE) > 1 and sum(size(e) for e in _RADIANCE_CACHE.values()) > _RADIANCE_CACHE_BYTES:
         _RADIANCE_CACHE.popitem(last=False)
     return x
 

@@ -195,3 +195,20 @@ def test_an_all_in_focus_sharp_image_is_not_deblurred() -> None:
     a = BaseModel(0.0, 1.0, sharp_deblur_iters=2).render(batch)
     b = BaseModel(0.0, 1.0, sharp_deblur_iters=0).render(batch)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_radiance_cache_is_bounded_and_keyed_by_the_batch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The deblurred sharp image is cached per batch (fits render one batch many times) within a byte bound;
+    a different batch never gets another's result."""
+    from neural_dp.simulators import base as base_mod
+
+    monkeypatch.setattr(base_mod, "_RADIANCE_CACHE", type(base_mod._RADIANCE_CACHE)())
+    batches = [make_batch(torch.rand(1, 3, 24, 32, generator=torch.Generator().manual_seed(k)), torch.full((1, 1, 24, 32), 12.0))
+               for k in range(3)]
+    one_entry = 3 * 24 * 32 * 4 * 2 + 24 * 32 * 4 + 4  # sharp + radiance, coc, f-numbers (bytes)
+    monkeypatch.setattr(base_mod, "_RADIANCE_CACHE_BYTES", one_entry)
+    first = [base_mod.sharp_radiance(b).clone() for b in batches]
+    assert len(base_mod._RADIANCE_CACHE) == 1
+    assert not torch.equal(first[0], batches[0].sharp)  # a 12 px CoC at f/2 means 1.1 px discs at f/22
+    for b, x in zip(batches, first):
+        assert torch.equal(base_mod.sharp_radiance(b), x)
