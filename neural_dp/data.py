@@ -111,6 +111,7 @@ class DPPairDataset(Dataset):
             "focal_length_mm": torch.tensor(p.focal_length_mm, dtype=torch.float32),
             "pixel_pitch_mm": torch.tensor(p.pixel_pitch_mm, dtype=torch.float32),
             "focus_point_px": torch.tensor([p.focus_point_px[0] - x0, fy - y0], dtype=torch.float32),
+            "sharp_f_number": torch.tensor(p.sharp_f_number, dtype=torch.float32),
             "pair_id": p.pair_id,
         }
 
@@ -125,5 +126,5 @@ def collate_dp(items: list[dict[str, object]]) -> DPBatch:
         f_number=stack("f_number"), focus_distance_mm=stack("focus_distance_mm"),
         focal_length_mm=stack("focal_length_mm"), pixel_pitch_mm=stack("pixel_pitch_mm"),
         focus_point_px=stack("focus_point_px"), left=stack("left"), right=stack("right"),
-        pair_ids=tuple(str(it["pair_id"]) for it in items),
+        pair_ids=tuple(str(it["pair_id"]) for it in items), sharp_f_number=stack("sharp_f_number"),
     )

@@ -319,6 +319,7 @@ def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: s
         pixel_pitch_mm=torch.tensor([p.pixel_pitch_mm for p in P], dtype=f32),
         focus_point_px=torch.tensor([p.focus_point_px for p in P], dtype=f32),
         pair_ids=tuple(p.pair_id for p in P),
+        sharp_f_number=torch.tensor([p.sharp_f_number for p in P], dtype=f32),  # 0: the frames are all-in-focus
     ).to(device)
 
 

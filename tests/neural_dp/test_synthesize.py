@@ -90,3 +90,32 @@ def test_random_focus_window_mean() -> None:
     x0 = int(np.clip(x - 30, 0, 1024 - 60))
     y0 = int(np.clip(y - 20, 0, 768 - 40))
     assert focus == pytest.approx(depth[y0 : y0 + 40, x0 : x0 + 60].mean())
+
+
+def test_base_simulator_reads_rgbd_frames_as_all_in_focus(tmp_path: Path) -> None:
+    """An RGBD frame is the radiance itself: the physical base model must not undo an f/22 blur it never had
+    (written pairs say sharp_f_number 0, and the batches synthesize renders carry it)."""
+    import torch
+
+    from neural_dp.batch import DPBatch
+    from neural_dp.simulators.base import BaseModel
+
+    _frames(tmp_path / "in", n=1)
+    synthesize(tmp_path / "in", tmp_path / "out", SynthConfig(simulator="base", f_numbers=(1.8,), depth_scale=1000.0,
+                                                               max_coc_px=12.0))
+    reader = DatasetReader(tmp_path / "out")
+    pair = reader.load(reader.ids()[0])
+    assert pair.params.sharp_f_number == 0.0
+    batch = DPBatch.from_pairs([pair])
+    written = batch.left[0]
+    as_radiance = BaseModel(sharp_deblur_iters=0)(batch)[0][0]
+    batch.sharp_f_number = torch.full((1,), 22.0)
+    as_f22_frame = BaseModel(sharp_deblur_iters=2)(batch)[0][0]
+    assert float((written - as_radiance).abs().max()) < 1e-3
+    assert float((written - as_f22_frame).abs().max()) > 1e-2
+    # training and evaluation batches (collate_dp) carry the same key
+    from neural_dp.data import DPPairDataset, collate_dp
+
+    split = next(name for name in reader.splits if reader.ids(name))
+    item_batch = collate_dp([DPPairDataset(tmp_path / "out", split)[0]])
+    assert item_batch.sharp_f_number is not None and item_batch.sharp_f_number.tolist() == [0.0]
