@@ -139,8 +139,8 @@ CONTEXT_STEP_PX = 16
 def context_margin_px(p: Pair, crop: int) -> int:
     """Sharp-image context (px) a crop needs on each side: half the pair's largest blur diameter (99.9th
     percentile of valid |CoC|) plus 2 px, rounded up to :data:`CONTEXT_STEP_PX`, at most ``crop``."""
-    a = np.abs(p.coc_px[p.valid]) if p.valid.any() else np.zeros(1)
-    need = float(np.quantile(a, 0.999)) / 2 + 2 if a.size else 2.0
+    a = np.abs(p.coc_px[p.valid])
+    need = (float(np.quantile(a, 0.999)) / 2 if a.size else 0.0) + 2
     return int(min(math.ceil(need / CONTEXT_STEP_PX) * CONTEXT_STEP_PX, crop))
 
 

@@ -516,9 +516,12 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     for _ in range(iters):
         x = x + (s - blur(x))
     _RADIANCE_CACHE[key] = (batch.sharp, batch.coc_px, x, batch.sharp_f_number)
-    size = lambda e: sum(t.numel() * t.element_size() for t in e if isinstance(t, Tensor))  # noqa: E731
-    while len(_RADIANCE_CACHE) > 1 and sum(size(e) for e in _RADIANCE_CACHE.values()) > _RADIANCE_CACHE_BYTES:
-        _RADIANCE_CACHE.popitem(last=False)
+    def nbytes(entry: tuple) -> int:
+        return sum(t.numel() * t.element_size() for t in entry if isinstance(t, Tensor))
+
+    total = sum(nbytes(e) for e in _RADIANCE_CACHE.values())
+    while len(_RADIANCE_CACHE) > 1 and total > _RADIANCE_CACHE_BYTES:
+        total -= nbytes(_RADIANCE_CACHE.popitem(last=False)[1])
     return x
 
 
