@@ -278,10 +278,9 @@ class FrontBackAsymmetry(Component):
 
 
 def fittable_names(comp: Component, samples: Sequence[Any]) -> list[str]:
-    """``comp``'s parameters that ``samples`` (diagnose ``Sample``s) can constrain: all of ``fit_names`` unless
-    the component says otherwise (``supported_names``); the rest stay at their neutral values."""
-    supported = getattr(comp, "supported_names", None)
-    return list(comp.fit_names) if supported is None else [n for n in supported(samples) if n in comp.fit_names]
+    """``comp``'s parameters that ``samples`` (diagnose ``Sample``s) can constrain (its ``supported_names``,
+    within ``fit_names``); the rest stay at their neutral values."""
+    return [n for n in comp.supported_names(samples) if n in comp.fit_names]
 
 
 def shift_image(img: Tensor, dx_px: float, dy_px: float) -> Tensor:

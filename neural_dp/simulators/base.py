@@ -130,6 +130,10 @@ class Component(torch.nn.Module):
     def initial_guess(self, model: "BaseModel", batch: DPBatch, field: Tensor) -> None:
         """Set a starting point for the fitter from data (optional)."""
 
+    def supported_names(self, samples: Sequence[object]) -> list[str]:
+        """The ``fit_names`` the fit data ``samples`` can constrain (default: all); the rest stay neutral."""
+        return list(self.fit_names)
+
     def describe(self) -> dict[str, float]:
         """Parameters to report (default: ``params``)."""
         return dict(self.params)
