@@ -23,8 +23,11 @@ log = logging.getLogger(__name__)
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
 @click.option("--neural-steps", default=150, show_default=True, type=click.IntRange(1),
               help="For neural:CKPT: fine-tuning steps of the structural extension and of its control (each).")
+@click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
+              help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
+                   "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
 def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int, nominal_noise: str,
-                     neural_steps: int) -> None:
+                     neural_steps: int, sharp_f_number: str) -> None:
     """Fit MODEL on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
@@ -40,11 +43,24 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         raise BadInputError(f"--nominal-noise must be SHOT_VAR,READ_SIGMA, got {nominal_noise!r}", where="--nominal-noise") from None
     if not (shot_var >= 0 and read_sigma >= 0):
         raise BadInputError(f"--nominal-noise values must be >= 0, got {nominal_noise!r}", where="--nominal-noise")
+    sharp_n: float | None = None
+    if sharp_f_number.strip().lower() != "auto":
+        try:
+            sharp_n = float(sharp_f_number)
+        except ValueError:
+            sharp_n = -1.0
+        if not (sharp_n >= 0 and sharp_n < float("inf")):
+            raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
+                                where="--sharp-f-number")
     out = out_dir or (dataset / f"diagnose-{model.replace(':', '_').replace('/', '_')}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect,
-                                                                neural_steps=neural_steps))
+                                                                neural_steps=neural_steps, sharp_f_number=sharp_n))
     g = res["gain"]
+    sr = res.get("sharp_reading") or {}
+    if sr.get("source") == "selected":
+        click.echo(f"sharp: {sr['pairs_without_key']} pairs do not state sharp_f_number; read as "
+                   f"{'all-in-focus' if sr['f_number'] == 0 else 'f/%g' % sr['f_number']} (it predicts the detection pairs better)")
     click.echo(f"cause: {res['cause']}")
     if res["cause"] != "none":
         click.echo(f"  {res['findings'][0]['explanation']}")

@@ -5,13 +5,13 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from dp5k_common.dataset import DatasetReader, Pair
+from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader, Pair
 from neural_dp.batch import DPBatch
 from neural_dp.simulators.base import field_coords
 
@@ -115,6 +115,27 @@ def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:
 
 def load_pairs(reader: DatasetReader, ids: Sequence[str]) -> list[Pair]:
     return [reader.load(pid) for pid in ids]
+
+
+def unstated_sharp_pairs(reader: DatasetReader, ids: Sequence[str]) -> frozenset[str]:
+    """The pairs whose params.json does not state ``sharp_f_number`` (format v1 then reads 22)."""
+    return frozenset(pid for pid in ids if "sharp_f_number" not in reader.params(pid).extra)
+
+
+def read_sharp_at(samples: Sequence[Sample], f_number: float, pair_ids: frozenset[str]) -> list[Sample]:
+    """The samples with ``sharp_f_number`` set to ``f_number`` (0 = all-in-focus) for the pairs in
+    ``pair_ids``; other pairs keep theirs. Samples without any such pair are returned as they are."""
+    out = []
+    for s in samples:
+        hit = [pid in pair_ids for pid in s.batch.pair_ids]
+        if not any(hit):
+            out.append(s)
+            continue
+        B = s.batch.sharp.shape[0]
+        old = s.batch.sharp_f_number if s.batch.sharp_f_number is not None else torch.full((B,), SHARP_F_NUMBER)
+        new = torch.where(torch.tensor(hit, device=old.device), torch.full_like(old, float(f_number)), old)
+        out.append(Sample(replace(s.batch, sharp_f_number=new), s.field, s.score))
+    return out
 
 
 def full_samples(pairs: Sequence[Pair], device: str = "cpu", per_batch: int = 4) -> list[Sample]:

@@ -149,6 +149,13 @@ def residual(model: BaseModel, s: Sample) -> Tensor:
     return torch.cat([l - s.batch.left, r - s.batch.right], 1)
 
 
+def masked_mse(model: BaseModel, samples: list[Sample]) -> float:
+    """Mean squared error of both views over the samples' scored pixels (linear units squared)."""
+    se = sum(float(residual(model, s).pow(2).mul(s.score).sum()) for s in samples)
+    n = sum(6.0 * float(s.score.sum()) for s in samples)
+    return se / max(n, 1.0)
+
+
 def tile_mse(model: BaseModel, samples: list[Sample], tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-tile squared-error sums, counts of scored pixels (``Sample.score``) and pair ids over all samples
     (nearly unscored tiles dropped: :func:`kept_tiles`)."""

@@ -99,6 +99,20 @@ def discrimination_text(d: dict[str, Any]) -> str:
             f"on top of `{a}`: the data needs `{d['winner']}`.")
 
 
+def sharp_reading_lines(sr: dict[str, Any] | None) -> list[str]:
+    """report.md lines on how ``sharp`` was read where params.json does not say (none when every pair does)."""
+    if not sr or sr.get("source") == "params.json":
+        return []
+    name = lambda n: "all-in-focus" if float(n) == 0 else f"f/{float(n):g}"  # noqa: E731
+    line = f"`sharp` of {sr['pairs_without_key']} pairs without `sharp_f_number` read as **{name(sr['f_number'])}**"
+    if sr.get("source") == "selected":
+        tried = ", ".join(f"{name(k)}: MSE {v:.3g}, cause `{sr['causes'].get(k)}`" for k, v in sr["detect_mse"].items())
+        line += f", the reading whose diagnosis predicts the detection pairs better ({tried})."
+    else:
+        line += " (`--sharp-f-number`)."
+    return [line, ""]
+
+
 def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) -> None:
     """``out/report.json`` (the contract of issue 7 plus analysis tables) and ``out/report.md`` with figures."""
     out.mkdir(parents=True, exist_ok=True)
@@ -125,6 +139,7 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
         "",
         f"Base model fitted on train: {json.dumps({k: round(v, 4) for k, v in result.get('base_params', {}).items()})}",
         "",
+        *sharp_reading_lines(result.get("sharp_reading")),
         "## Findings (every effect tested, ranked)",
         "",
         "Effect size: the share of the base model's systematic error (its squared error less the views' measured "

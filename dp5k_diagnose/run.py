@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from dp5k_common.dataset import DatasetReader
+from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.errors import BadInputError
 from neural_dp.simulators.base import BaseModel
 
-from .data import Sample, crop_samples, full_samples, load_pairs
-from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, name_cause, test_effects
+from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
+from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, masked_mse, name_cause, test_effects
 from .gain import gain_report, pair_metrics_by_mask
 
 log = logging.getLogger(__name__)
@@ -37,6 +37,8 @@ class DiagnoseConfig:
         detect: the detectors' statistical settings.
         effects: the effects to test (default: the whole vocabulary).
         neural_steps: fine-tuning steps of the Neural DP extension study (``--model neural:CKPT``).
+        sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
+            None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
     """
 
     fit_pairs: int = 4
@@ -48,6 +50,67 @@ class DiagnoseConfig:
     detect: DetectConfig = field(default_factory=DetectConfig)
     effects: tuple[str, ...] = EFFECT_NAMES
     neural_steps: int = 150
+    sharp_f_number: float | None = None
+
+
+SHARP_READINGS = (SHARP_F_NUMBER, 0.0)
+"""The readings tried for a ``sharp`` whose f-number params.json does not state: format v1's f/22 capture,
+and an all-in-focus image (what a generator that blurs ``sharp`` itself, Eq. 2 read literally, writes)."""
+
+
+@dataclass
+class SharpReading:
+    """How ``sharp`` was read in the pairs whose params.json does not state ``sharp_f_number``.
+
+    Attributes:
+        f_number: the f-number given to those pairs (0 = all-in-focus); None when every pair states its own.
+        source: "params.json" (every pair states it), "--sharp-f-number" (the user's) or "selected".
+        unstated: ids of the pairs without the key.
+        detect_mse: per reading tried, the detection-set MSE of the model that reading's diagnosis chose
+            (base, or base + its named effect); the lower one is selected.
+        causes: per reading tried, the cause it named.
+    """
+
+    f_number: float | None
+    source: str
+    unstated: frozenset[str] = frozenset()
+    detect_mse: dict[str, float] = field(default_factory=dict)
+    causes: dict[str, str] = field(default_factory=dict)
+
+    def apply(self, samples: list[Sample]) -> list[Sample]:
+        """The samples read this way."""
+        return samples if self.f_number is None else read_sharp_at(samples, self.f_number, self.unstated)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"f_number": self.f_number, "source": self.source, "pairs_without_key": len(self.unstated),
+                "detect_mse": self.detect_mse, "causes": self.causes}
+
+
+@dataclass
+class _Pass:
+    """One diagnosis of the fit and detection sets under one reading of ``sharp``."""
+
+    base: BaseModel
+    findings: list[Finding]
+    discrimination: Discrimination | None
+    cause: str
+    extended: BaseModel
+    detect_mse: float
+    seconds: tuple[float, float]
+    """(fitting the base model, testing the effects)."""
+
+
+def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _Pass:
+    t0 = time.perf_counter()
+    base = fit_base(fit, cfg.detect.lm_iters)
+    log.info("base model fitted: %s", base.params)
+    t1 = time.perf_counter()
+    findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
+    disc = discriminate(findings, base, fit, det, cfg.detect)
+    cause = name_cause(findings)
+    extended = findings[0].model if cause != NO_EFFECT and findings[0].model is not None else base
+    mse = masked_mse(extended, det)
+    return _Pass(base, findings, disc, cause, extended, mse, (t1 - t0, time.perf_counter() - t1))
 
 
 @dataclass
@@ -62,6 +125,7 @@ class Diagnosis:
     timings_s: dict[str, float]
     splits_used: dict[str, list[str]]
     discrimination: Discrimination | None = None
+    sharp_reading: SharpReading = field(default_factory=lambda: SharpReading(None, "params.json"))
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -75,6 +139,7 @@ class Diagnosis:
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
             "discrimination": self.discrimination.to_json() if self.discrimination else None,
+            "sharp_reading": self.sharp_reading.to_json(),
         }
 
 
@@ -104,17 +169,33 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     rng = np.random.default_rng(cfg.seed)
     fit = crop_samples(load_pairs(reader, splits["fit"]), cfg.crop_px, cfg.crops_per_pair, rng)
     det = crop_samples(load_pairs(reader, splits["detect"]), cfg.crop_px, 1, rng)
+    unstated = unstated_sharp_pairs(reader, sorted({pid for ids in splits.values() for pid in ids}))
     t_load = time.perf_counter()
-    base = fit_base(fit, cfg.detect.lm_iters)
-    log.info("base model fitted: %s", base.params)
-    t_fit = time.perf_counter()
-    findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
-    disc = discriminate(findings, base, fit, det, cfg.detect)
-    cause = name_cause(findings)
-    extended = findings[0].model if cause != NO_EFFECT and findings[0].model is not None else base
+    if not unstated:
+        tries: tuple[float | None, ...] = (None,)
+        source = "params.json"
+    elif cfg.sharp_f_number is not None:
+        tries, source = (float(cfg.sharp_f_number),), "--sharp-f-number"
+    else:
+        tries, source = SHARP_READINGS, "selected"
+        log.info("%d pairs do not state sharp_f_number: diagnosing with sharp read at f/%g and as all-in-focus",
+                 len(unstated), SHARP_F_NUMBER)
+    passes: dict[float | None, _Pass] = {}
+    for ns in tries:
+        reading = SharpReading(ns, source, unstated)
+        passes[ns] = _detect_pass(reading.apply(fit), reading.apply(det), cfg)
+    chosen = min(passes, key=lambda k: passes[k].detect_mse)
+    label = lambda k: "stated" if k is None else f"{k:g}"  # noqa: E731
+    reading = SharpReading(chosen, source, unstated, {label(k): p.detect_mse for k, p in passes.items()},
+                           {label(k): p.cause for k, p in passes.items()})
+    if len(passes) > 1:
+        log.info("sharp read as %s (detection MSE %s)", "all-in-focus" if chosen == 0 else f"f/{chosen:g}", reading.detect_mse)
+    ps = passes[chosen]
+    base, findings, disc, cause, extended = ps.base, ps.findings, ps.discrimination, ps.cause, ps.extended
+    t_fit = t_load + sum(p.seconds[0] for p in passes.values())
     t_det = time.perf_counter()
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
-    held = full_samples(load_pairs(reader, splits[gain_split]))
+    held = reading.apply(full_samples(load_pairs(reader, splits[gain_split])))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
     gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
@@ -122,7 +203,7 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     gain["all_valid"] = {k: v for k, v in g_all.items() if k not in ("split", "per_pair_psnr_gain")}
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
-    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, disc)
+    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, disc, reading)
 
 
 def analyse(predict, samples: list[Sample], with_psfs: bool = True) -> dict[str, Any]:
@@ -153,7 +234,7 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
     result = diag.to_json()
     reader = DatasetReader(dataset)
     gain_split = diag.gain["split"]
-    held = full_samples(load_pairs(reader, diag.splits_used[gain_split]))
+    held = diag.sharp_reading.apply(full_samples(load_pairs(reader, diag.splits_used[gain_split])))
     analysis: dict[str, Any] = {
         "before": analyse(lambda s: diag.base.render(s.batch, s.field), held),
     }

@@ -180,6 +180,7 @@ def make_dataset(
     supersample: int = 2,
     overwrite: bool = False,
     noise: bool = True,
+    all_in_focus_sharp: bool = False,
 ) -> Path:
     """Write a format-v1 dataset of studio scenes with planted effects.
 
@@ -194,6 +195,8 @@ def make_dataset(
         supersample: rays per pixel side.
         overwrite: replace existing pairs.
         noise: add nominal noise to the DP views.
+        all_in_focus_sharp: write the rendered radiance as ``sharp`` (``sharp_f_number`` 0) instead of the
+            f/22 capture, as a generator that blurs ``sharp`` itself would.
 
     Returns:
         The dataset folder. Pair ids are ``<scene>_<camera>_f<N>``; splits are by scene.
@@ -228,12 +231,13 @@ def make_dataset(
         for N in f_numbers:
             rp = pair_from_rgbd(radiance, depth_mm, f_number=float(N), focus_distance_mm=F_rec,
                                 focal_length_mm=cam.focal_length_mm, pixel_pitch_mm=cam.pixel_pitch_mm,
-                                effects=eff, rng=rng, noise=noise, sharp_is_pinhole=sharp is None, hidden=hidden)
+                                effects=eff, rng=rng, noise=noise, sharp_is_pinhole=sharp is None and not all_in_focus_sharp,
+                                hidden=hidden)
             if sharp is None:
                 sharp = rp.sharp
             pair_id = f"{scene.name}_{cam.name}_f{N:g}"
             params = PairParams(pair_id, scene.name, cam.name, float(N), F_rec, cam.focal_length_mm, cam.pixel_pitch_mm,
-                                (fx, fy), (W, H), {**rp.extra, "sharp_f_number": SHARP_F_NUMBER,  # every pair shares the f/22 render
+                                (fx, fy), (W, H), {**rp.extra, "sharp_f_number": 0.0 if all_in_focus_sharp else SHARP_F_NUMBER,  # pairs share the first render
                                                    "source": "studio", "scene_seed": scene.seed})
             write_pair(out, params, sharp=sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm, coc_px=rp.coc_px,
                        overwrite=overwrite)
