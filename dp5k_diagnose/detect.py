@@ -64,6 +64,9 @@ class DetectConfig:
         alpha: significance level of the one-sided tests.
         min_effect: smallest share of the base model's systematic error an effect must remove to count.
         lm_iters: Levenberg-Marquardt iterations per effect.
+        base_lm_iters: Levenberg-Marquardt iterations of the base model's own fit (rim softness and gain),
+            which every effect is measured against; it must converge, or the effects' fits, which refit the
+            rim, are credited with the rest of its convergence.
         refine_top: effects fitted beyond the one-iteration screening.
         noise_min_effect: smallest excess noise variance, as a multiple of the nominal variance, that counts
             as ``noise`` (0.5: 1.5 x the nominal variance; clean studio data measures 0.04-0.06).
@@ -80,6 +83,7 @@ class DetectConfig:
     alpha: float = 0.05
     min_effect: float = 0.15
     lm_iters: int = 3
+    base_lm_iters: int = 12
     refine_top: int = 2
     noise_min_effect: float = 0.5
     noise_flat_window_px: int = 13

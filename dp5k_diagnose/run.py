@@ -102,7 +102,7 @@ class _Pass:
 
 def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _Pass:
     t0 = time.perf_counter()
-    base = fit_base(fit, cfg.detect.lm_iters)
+    base = fit_base(fit, cfg.detect.base_lm_iters)
     log.info("base model fitted: %s", base.params)
     t1 = time.perf_counter()
     findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
