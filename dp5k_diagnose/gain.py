@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dp5k_common.errors import BadInputError
 from neural_dp.metrics import view_metrics
 
 from .data import Sample
@@ -72,17 +73,25 @@ def bootstrap_ci(diff: np.ndarray, n_boot: int = 2000, level: float = 0.95, seed
 def gain_report(before: PairMetrics, after: PairMetrics, split: str, n_boot: int = 2000, seed: int = 0, mask: str = "valid") -> dict:
     """The ``gain`` object of report.json (means over pairs with finite metrics) plus per-pair PSNR gains."""
     d = after.psnr - before.psnr
+    if not np.isfinite(d).any():
+        raise BadInputError(f"no pair of the {split} split has a pixel to measure the gain on ({mask} pixels)")
     lo, hi = bootstrap_ci(d, n_boot, seed=seed)
+
+    def mean(x: np.ndarray) -> float:
+        x = np.asarray(x, dtype=np.float64)
+        return float(x[np.isfinite(x)].mean()) if np.isfinite(x).any() else 0.0
+
     return {
         "split": split,
         "mask": mask,
         "n_pairs": int(np.isfinite(d).sum()),
-        "psnr_before": float(np.nanmean(before.psnr)),
-        "psnr_after": float(np.nanmean(after.psnr)),
-        "ssim_before": float(np.nanmean(before.ssim)),
-        "ssim_after": float(np.nanmean(after.ssim)),
-        "mae_before": float(np.nanmean(before.mae)),
-        "mae_after": float(np.nanmean(after.mae)),
+        "psnr_before": mean(before.psnr),
+        "psnr_after": mean(after.psnr),
+        "ssim_before": mean(before.ssim),
+        "ssim_after": mean(after.ssim),
+        "mae_before": mean(before.mae),
+        "mae_after": mean(after.mae),
         "psnr_gain_ci95": [lo, hi],
-        "per_pair_psnr_gain": {pid: float(x) for pid, x in zip(before.pair_ids, d)},
+        # a pair without measurable pixels (no valid pixel) is null here and left out of the means and the CI
+        "per_pair_psnr_gain": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, d)},
     }

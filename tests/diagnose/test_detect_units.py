@@ -272,3 +272,36 @@ def test_crops_carry_the_sharp_context_their_blur_needs() -> None:
             reach = 60.0 / 2
             dist = torch.minimum(torch.minimum(ys, h - 1 - ys), torch.minimum(xs, w - 1 - xs)).float()
             assert bool((dist >= reach).all())  # every scored pixel's blur lies inside the cut
+
+
+def test_predictable_mask_never_leaves_a_pair_unscored() -> None:
+    """Depth edges every 4 px whose blur reaches every pixel: rather than score nothing (its held-out PSNR was
+    NaN and report.json could not be written), such a pair keeps the pixels far enough from the border."""
+    H = W = 48
+    coc = torch.full((2, 1, H, W), 2.0)
+    coc[0, :, :, (torch.arange(W) // 4) % 2 == 1] = 6.0  # pair 0: stripes of two depths
+    b = make_batch(torch.rand(2, 3, H, W), coc)
+    m = predictable_mask(b)
+    assert int(m[0].sum()) > 0.5 * H * W
+    assert not bool(m[0, 0, :3].any())  # the border is still left out
+    # pair 1 (one depth) is unaffected: its mask is the border rule alone, as for a batch of it alone
+    assert torch.equal(m[1], predictable_mask(make_batch(b.sharp[1:], coc[1:]))[0])
+
+
+def test_gain_report_leaves_out_a_pair_without_pixels_and_stays_valid_json() -> None:
+    import json
+
+    from dp5k_common.errors import BadInputError
+    from dp5k_diagnose.gain import PairMetrics, gain_report
+
+    nan = float("nan")
+    before = PairMetrics(["a", "b", "c"], np.array([30.0, nan, 32.0]), np.array([0.9, nan, 0.92]), np.array([0.01, nan, 0.012]))
+    after = PairMetrics(["a", "b", "c"], np.array([31.0, nan, 34.0]), np.array([0.91, nan, 0.95]), np.array([0.009, nan, 0.01]))
+    g = gain_report(before, after, "test", n_boot=200)
+    json.dumps(g, allow_nan=False)  # report.json is written with allow_nan=False
+    assert g["n_pairs"] == 2 and g["per_pair_psnr_gain"] == {"a": 1.0, "b": None, "c": 2.0}
+    assert g["psnr_before"] == pytest.approx(31.0) and g["psnr_after"] == pytest.approx(32.5)
+    assert 1.0 <= g["psnr_gain_ci95"][0] <= g["psnr_gain_ci95"][1] <= 2.0
+    empty = PairMetrics(["b"], np.array([nan]), np.array([nan]), np.array([nan]))
+    with pytest.raises(BadInputError, match="no pair of the test split"):
+        gain_report(empty, empty, "test")
