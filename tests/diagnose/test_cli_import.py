@@ -77,6 +77,9 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     for bad in ("2e-5", "a,b", "-1,0.001"):
         res = runner.invoke(main, ["diagnose", str(tmp_path), "--nominal-noise", bad])
         assert res.exit_code == 3 and "--nominal-noise" in res.output, (bad, res.output)
+    for bad in ("f/22", "-1", "inf", "nan"):
+        res = runner.invoke(main, ["diagnose", str(tmp_path), "--sharp-f-number", bad])
+        assert res.exit_code == 3 and "--sharp-f-number" in res.output, (bad, res.output)
 
 
 @pytest.mark.slow
