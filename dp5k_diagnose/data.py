@@ -44,8 +44,9 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     to the border (px) is at least :math:`\max_{w}|C| / 2 + \text{margin}`, with :math:`\max_w |C|` the
     largest |signed CoC| (output px) in a ``window_px`` neighbourhood (neighbours' blur reaches the pixel too),
     and that no depth edge's blur reaches (:func:`occlusion_free_mask`). An image (or crop) where fewer than
-    10 % of its valid pixels are far enough from the border keeps all of them (less those near depth edges),
-    and one where depth edges' blur reaches every kept pixel keeps them all, so no pair is left unscored.
+    10 % of its valid pixels are far enough from the border keeps all of them (less those near depth edges).
+    A pair (or crop) whose every such pixel is within a depth edge's reach scores none: a crop then adds
+    nothing to the statistics, and a held-out pair is left out of the gain (:func:`gain.gain_report`).
     """
     B, _, H, W = batch.coc_px.shape
     a = batch.coc_px.abs() * batch.valid
@@ -58,10 +59,7 @@ def predictable_mask(batch: DPBatch, margin_px: float = 1.0, window_px: int = 17
     # an image whose blur nearly everywhere reaches past its border: score its valid pixels rather than none
     few = keep.flatten(1).sum(1) < 0.1 * batch.valid.flatten(1).sum(1)
     keep = torch.where(few.view(-1, 1, 1, 1), batch.valid, keep)
-    scored = keep & occlusion_free_mask(batch)
-    # a pair whose every kept pixel is within blur reach of a depth edge: score those rather than none
-    empty = scored.flatten(1).sum(1) == 0
-    return torch.where(empty.view(-1, 1, 1, 1), keep, scored)
+    return keep & occlusion_free_mask(batch)
 
 
 def occlusion_free_mask(batch: DPBatch, min_jump_px: float = 0.5, rel_jump: float = 0.1, margin_px: float = 1.5) -> Tensor:

@@ -92,6 +92,6 @@ def gain_report(before: PairMetrics, after: PairMetrics, split: str, n_boot: int
         "mae_before": mean(before.mae),
         "mae_after": mean(after.mae),
         "psnr_gain_ci95": [lo, hi],
-        # a pair without measurable pixels (no valid pixel) is null here and left out of the means and the CI
+        # a pair without a scored pixel (e.g. all within a depth edge's reach) is null here, out of the means and CI
         "per_pair_psnr_gain": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, d)},
     }

@@ -274,20 +274,6 @@ def test_crops_carry_the_sharp_context_their_blur_needs() -> None:
             assert bool((dist >= reach).all())  # every scored pixel's blur lies inside the cut
 
 
-def test_predictable_mask_never_leaves_a_pair_unscored() -> None:
-    """Depth edges every 4 px whose blur reaches every pixel: rather than score nothing (its held-out PSNR was
-    NaN and report.json could not be written), such a pair keeps the pixels far enough from the border."""
-    H = W = 48
-    coc = torch.full((2, 1, H, W), 2.0)
-    coc[0, :, :, (torch.arange(W) // 4) % 2 == 1] = 6.0  # pair 0: stripes of two depths
-    b = make_batch(torch.rand(2, 3, H, W), coc)
-    m = predictable_mask(b)
-    assert int(m[0].sum()) > 0.5 * H * W
-    assert not bool(m[0, 0, :3].any())  # the border is still left out
-    # pair 1 (one depth) is unaffected: its mask is the border rule alone, as for a batch of it alone
-    assert torch.equal(m[1], predictable_mask(make_batch(b.sharp[1:], coc[1:]))[0])
-
-
 def test_gain_report_leaves_out_a_pair_without_pixels_and_stays_valid_json() -> None:
     import json
 
