@@ -291,3 +291,36 @@ def test_gain_report_leaves_out_a_pair_without_pixels_and_stays_valid_json() -> 
     empty = PairMetrics(["b"], np.array([nan]), np.array([nan]), np.array([nan]))
     with pytest.raises(BadInputError, match="no pair of the test split"):
         gain_report(empty, empty, "test")
+
+
+@pytest.mark.parametrize("true_rim", ["base", "refit"])
+def test_an_effect_keeps_the_refit_rim_softness_only_where_the_detection_set_prefers_it(true_rim: str) -> None:
+    """The refit rim softness of an effect's extension is replaced by the base model's when that predicts the
+    detection pairs better (and kept when it does not); the effect's own parameters stay as fitted."""
+    from dp5k_diagnose.components import COMPONENTS
+
+    sharp = scene(5)
+    B, _, H, W = sharp.shape
+    fld = field_coords(B, H, W)
+    rims = {"base": 0.3, "refit": 0.9}
+    comp = COMPONENTS["lr_gain_imbalance"]()
+    comp.params.update(a0=0.1)
+    coc = torch.full((B, 1, H, W), 1.5)
+    l, r = BaseModel(rim_softness_px=rims[true_rim]).with_component(comp).render(make_batch(sharp, coc), fld)
+    b = dataclasses.replace(make_batch(sharp, coc, l, r), pair_ids=tuple(f"p{i}" for i in range(B)))
+    det = [Sample(b, fld)]
+    base = BaseModel(rim_softness_px=rims["base"])
+    model = BaseModel(rim_softness_px=rims["refit"], gain=1.0).with_component(comp)
+    kept = detect.keep_rim_if_better(model, base, det)
+    assert kept.params["rim_softness_px"] == rims[true_rim]
+    assert kept.components[-1].params["a0"] == 0.1 and kept.params["gain"] == model.params["gain"]
+    assert detect.masked_mse(kept, det) <= detect.masked_mse(model, det)
+
+
+def test_detection_thresholds_are_per_effect() -> None:
+    """chromatic_defocus has its own, lower threshold (renderer mismatch that is the same in every channel
+    cannot feed it); every other predictable effect uses min_effect, noise its own."""
+    cfg = DetectConfig()
+    assert cfg.threshold("chromatic_defocus") < cfg.min_effect
+    assert cfg.threshold("psf_profile") == cfg.min_effect and cfg.threshold("noise") == cfg.noise_min_effect
+    assert DetectConfig(min_effect_by_effect={}).threshold("chromatic_defocus") == cfg.min_effect

@@ -22,9 +22,11 @@ SIZE = (160, 96)
 SCENES = 13
 """Scenes per case: the studio's paper proportions then give 2 test scenes (8 held-out pairs for the gain's
 bootstrap CI; 8 scenes gave one scene's 4 pairs, too few to bound a gain of a few tenths of a dB)."""
-SMALL_EFFECTS = {"chromatic_defocus"}
-"""Effects that are physically invisible at SIZE and moderate strength (sub-0.1 px CoC change): the test
-then requires only that no other effect is named and that nothing gets worse (see docs/diagnose.md)."""
+SMALL_EFFECTS: set[str] = set()
+"""Effects that are physically invisible at SIZE and moderate strength: the test then requires only that no
+other effect is named and that nothing gets worse (see docs/diagnose.md). None at present: chromatic_defocus
+(a 0.1 px CoC change here) was one until it got its own detection threshold and extensions stopped keeping a
+refit rim softness the detection pairs reject."""
 
 
 KNOWN_GAPS: dict[str, str] = {}
@@ -69,6 +71,10 @@ def _near(fitted: dict, truth: dict, effect: str) -> list[str]:
     elif effect == "psf_profile":
         if not fitted["rim_gain"] > 0.3 * t["rim_gain"]:
             bad.append(f"rim_gain {fitted['rim_gain']:.3f} vs planted {t['rim_gain']:.3f}")
+    elif effect == "chromatic_defocus":
+        r, _, b = t["focal_shift_mm_rgb"]
+        close("focal_shift_r_mm", fitted["focal_shift_r_mm"], r, 0.015)
+        close("focal_shift_b_mm", fitted["focal_shift_b_mm"], b, 0.015)
     elif effect == "noise":
         shot = t["shot_var_factor"] * studio.NOISE_SHOT
         if not 0.4 * shot <= fitted["shot_var"] <= 2.5 * shot:
