@@ -286,8 +286,8 @@ def plot_reach(res: dict[str, Any], path: Path) -> str:
 
 
 def diagnose_neural(dataset: str | Path, checkpoint: str | Path, out_dir: str | Path, *, steps: int = 150,
-                    seed: int = 0, device: str = "cpu", levels: int = 3, lr: float = 5e-4, crop_px: int = 96,
-                    batch_size: int = 4, new_lr_mult: float = 10.0, bins: Sequence[float] = BINS_PX,
+                    seed: int = 0, device: str = "cpu", levels: int = 3, lr: float = 5e-5, crop_px: int = 96,
+                    batch_size: int = 4, new_lr_mult: float = 100.0, bins: Sequence[float] = BINS_PX,
                     n_boot: int = 2000) -> dict[str, Any]:
     """Diagnose a Neural DP checkpoint's reach, extend it with multi-scale kernels and measure the gain.
 
@@ -299,10 +299,13 @@ def diagnose_neural(dataset: str | Path, checkpoint: str | Path, out_dir: str | 
         seed: crops, data order, dropout and bootstrap seed.
         device: "cpu", "cuda", "cuda:N" or "auto".
         levels: extra kernel scales (dilations 2, ..., 2**levels px).
-        lr: peak fine-tuning learning rate (cosine to 0).
+        lr: peak fine-tuning learning rate of the checkpoint's own weights (cosine to 0). Low (5e-5), so
+            that fine-tuning does not undo a well-trained checkpoint: at 5e-4 the control lost 0.8-1.0 dB
+            in 150 steps (docs/diagnose.md, Limits).
         crop_px: fine-tuning crop side in px.
         batch_size: fine-tuning crops per step.
-        new_lr_mult: learning-rate factor of the added multi-scale head (see :func:`finetune`).
+        new_lr_mult: learning-rate factor of the added multi-scale head (see :func:`finetune`); 100, i.e.
+            the new, zero-initialised blend weights learn at 5e-3.
         bins: |CoC| bin edges in px.
         n_boot: bootstrap resamples.
 
@@ -475,8 +478,8 @@ def main() -> None:
     ap.add_argument("out")
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--levels", type=int, default=3)
-    ap.add_argument("--lr", type=float, default=5e-4)
-    ap.add_argument("--new-lr-mult", type=float, default=10.0)
+    ap.add_argument("--lr", type=float, default=5e-5)
+    ap.add_argument("--new-lr-mult", type=float, default=100.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args()
