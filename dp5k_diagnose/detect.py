@@ -66,11 +66,11 @@ class DetectConfig:
         min_effect: smallest share of the base model's systematic error an effect must remove to count. It
             guards against mismatch between the model and the data (a real lens, another renderer) that an
             effect's component can absorb: on clean studio data no component explains more than 0.015, on
-            the real Sdirt data components that are not the cause explain up to 0.31.
+            the real Sdirt data components that are not the cause explain up to 0.33.
         min_effect_by_effect: per-effect thresholds that replace ``min_effect``. ``chromatic_defocus``: 0.04.
             Its component only moves the red and blue channels' focus against green, so mismatch that is the
             same in every colour channel, as a real lens' PSF shape is, cannot feed it: on the real Sdirt
-            data achromatic components explain 0.14-0.31 without being the cause, chromatic_defocus -0.006;
+            data achromatic components explain 0.14-0.33 without being the cause, chromatic_defocus -0.006;
             on 26 clean studio sets it explains at most 0.001. A strength-1 studio focal shift (0.1-0.4 px
             of CoC) explains 0.04-0.24 (docs/diagnose.md, Detectability).
         lm_iters: Levenberg-Marquardt iterations per effect.
