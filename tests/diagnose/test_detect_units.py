@@ -324,3 +324,61 @@ def test_detection_thresholds_are_per_effect() -> None:
     assert cfg.threshold("chromatic_defocus") < cfg.min_effect
     assert cfg.threshold("psf_profile") == cfg.min_effect and cfg.threshold("noise") == cfg.noise_min_effect
     assert DetectConfig(min_effect_by_effect={}).threshold("chromatic_defocus") == cfg.min_effect
+
+
+def test_noise_on_texture_everywhere_is_not_the_views_dp_disparity() -> None:
+    """A scene textured everywhere (no flat patch in sharp) and blurred by 3-9 px discs, with nominal noise:
+    flatness is judged on the views the base model predicts and their L - R is taken out, so the DP
+    disparity of the blurred texture does not read as noise (judged on sharp it read as 37 x nominal)."""
+    g = torch.Generator().manual_seed(7)
+    B, H, W = 4, 64, 96
+    sharp = (0.15 + 0.7 * torch.rand(B, 3, H // 2, W // 2, generator=g)).repeat_interleave(2, -1).repeat_interleave(2, -2)
+    coc = torch.linspace(3.0, 9.0, W).expand(B, 1, H, W).clone()
+    coc[:, :, : H // 2] *= -1  # front of focus above, behind below
+    truth = BaseModel(rim_softness_px=0.0)
+    b = dataclasses.replace(make_batch(sharp, coc), pair_ids=tuple(f"p{i}" for i in range(B)))
+    fld = field_coords(B, H, W)
+    with torch.no_grad():
+        left, right = truth.render(b, fld)
+    noisy = []
+    for v in (left, right):
+        noisy.append(v + torch.sqrt(SHOT * v.clamp(min=0) + READ**2) * torch.randn(v.shape, generator=g))
+    s = [Sample(dataclasses.replace(b, left=noisy[0], right=noisy[1]), fld)]
+    f = detect.test_noise(truth, s, [], DetectConfig())
+    assert f.params["variance_ratio"] == pytest.approx(1.0, abs=0.2) and not f.detected
+    # the same views with 4 x the nominal variance are still found
+    loud = [v + torch.sqrt(3 * (SHOT * v.clamp(min=0) + READ**2)) * torch.randn(v.shape, generator=g) for v in noisy]
+    f4 = detect.test_noise(truth, [Sample(dataclasses.replace(b, left=loud[0], right=loud[1]), fld)], [], DetectConfig())
+    assert f4.params["variance_ratio"] == pytest.approx(4.0, rel=0.2) and f4.detected
+
+
+def test_noise_is_measured_again_against_the_detected_effect() -> None:
+    """Too little DP disparity (crosstalk) on texture that is nowhere flat: against the base model the views'
+    L - R error reads as excess noise and is detected; measured against the base model with the detected
+    disparity_scale it is the nominal noise again, and the finding says against what it was measured."""
+    from dp5k_diagnose.components import COMPONENTS
+
+    g = torch.Generator().manual_seed(11)
+    B, H, W = 4, 64, 96
+    sharp = (0.15 + 0.7 * torch.rand(B, 3, H // 2, W // 2, generator=g)).repeat_interleave(2, -1).repeat_interleave(2, -2)
+    coc = torch.linspace(3.0, 9.0, W).expand(B, 1, H, W).clone()
+    b = dataclasses.replace(make_batch(sharp, coc), pair_ids=tuple(f"p{i}" for i in range(B)))
+    fld = field_coords(B, H, W)
+    base = BaseModel(rim_softness_px=0.0)
+    comp = COMPONENTS["disparity_scale"]()
+    comp.params["disparity_scale"] = 0.4
+    truth = base.with_component(comp)
+    with torch.no_grad():
+        left, right = truth.render(b, fld)
+    noisy = [v + torch.sqrt(SHOT * v.clamp(min=0) + READ**2) * torch.randn(v.shape, generator=g) for v in (left, right)]
+    s = [Sample(dataclasses.replace(b, left=noisy[0], right=noisy[1]), fld)]
+    cfg = DetectConfig()
+    noise = detect.test_noise(base, s, [], cfg)
+    assert noise.detected and noise.params["variance_ratio"] > 1.5
+    effect = Finding("disparity_scale", 5.0, 1e-4, 0.9, True, dict(comp.params), "disparity_scale", truth)
+    again = detect.remeasure_noise(noise, [noise, effect], s, [], cfg, 1e-5)
+    assert again.params["variance_ratio"] == pytest.approx(1.0, abs=0.2) and not again.detected
+    assert again.params["variance_ratio_vs_base"] == noise.params["variance_ratio"]
+    assert "against the base model with disparity_scale" in again.explanation
+    # nothing else detected: the first measurement stands
+    assert detect.remeasure_noise(noise, [noise, dataclasses.replace(effect, detected=False)], s, [], cfg, 1e-5) is noise
