@@ -150,7 +150,7 @@ def _finite(x: float, default: float = 0.0) -> float:
 
 
 def copy_base(base: BaseModel) -> BaseModel:
-    return BaseModel(base.params["rim_softness_px"], base.params["gain"], [], base.config, base.sharp_deblur_iters)
+    return base.replaced([])
 
 
 def tile_sums(x: Tensor, mask: Tensor, tile: int) -> tuple[Tensor, Tensor]:
@@ -221,22 +221,29 @@ def clustered_delta(base_su: np.ndarray, su: np.ndarray, co: np.ndarray, owners:
     return np.array([np.log((base_su[owners == i].sum() + eps) / (su[owners == i].sum() + eps)) for i in ids])
 
 
-def keep_rim_if_better(model: BaseModel, base: BaseModel, det: list[Sample]) -> BaseModel:
-    """``model``, or ``model`` with the base model's rim softness where that predicts the detection set better.
+PSF_NUISANCE = ("rim_softness_px", "pixel_box")
+"""The base model's parameters that shape every PSF without being a lens effect (the residual blur and the
+pixel sampling): refitted with every effect that changes blur, since each trades off against it."""
 
-    An effect's refinement refits the rim softness (it trades off against the PSF's size and shape), but
-    the fit crops may barely constrain it: on a 320 x 192 studio set with a planted chromatic focal shift
-    the refit moved it from 0.143 to 0.166 px for a 0.01 % lower fit error, which cost 0.65 dB on the
-    held-out pairs' in-focus texture (the extension lost 0.27 dB instead of gaining 0.38). The detection
-    pairs, which the fit did not see, decide between the two values.
+
+def keep_rim_if_better(model: BaseModel, base: BaseModel, det: list[Sample]) -> BaseModel:
+    """``model``, or ``model`` with the base model's rim softness and pixel sampling where that predicts the
+    detection set better.
+
+    An effect's refinement refits them (they trade off against the PSF's size and shape), but the fit crops
+    may barely constrain them: on a 320 x 192 studio set with a planted chromatic focal shift the refit
+    moved the rim from 0.143 to 0.166 px for a 0.01 % lower fit error, which cost 0.65 dB on the held-out
+    pairs' in-focus texture (the extension lost 0.27 dB instead of gaining 0.38). The detection pairs,
+    which the fit did not see, decide between the two settings.
     """
-    rim = base.params["rim_softness_px"]
-    if model.params["rim_softness_px"] == rim:
+    kept = {k: base.params[k] for k in PSF_NUISANCE}
+    if all(model.params[k] == v for k, v in kept.items()):
         return model
-    alt = BaseModel(rim, model.params["gain"], list(model.components), model.config, model.sharp_deblur_iters)
+    alt = model.replaced(**kept)
     if masked_mse(alt, det) < masked_mse(model, det):
-        log.info("%s: refit rim softness %.4f px predicts the detection set worse than the base's %.4f; kept the base's",
-                 model.components[-1].name if model.components else "base", model.params["rim_softness_px"], rim)
+        log.info("%s: refit rim softness %.4f px / pixel_box %.3f predict the detection set worse than the base's %.4f / %.3f; kept the base's",
+                 model.components[-1].name if model.components else "base", model.params["rim_softness_px"], model.params["pixel_box"],
+                 kept["rim_softness_px"], kept["pixel_box"])
         return alt
     return model
 
@@ -254,19 +261,33 @@ def one_sided_t(x: np.ndarray) -> tuple[float, float]:
 
 
 def fit_base(fit: list[Sample], iters: int = 4) -> BaseModel:
-    """The base model with its two parameters fitted on the fit samples."""
+    """The base model with its parameters (rim softness, gain, pixel sampling) fitted on the fit samples.
+
+    ``pixel_box`` is the renderer's discretisation, not a lens effect: whether the data's PSFs reach pixels
+    as if each sharp pixel were a linearly interpolated sample (0, dp5k's studio) or a uniform square of
+    light (1, a renderer that draws anti-aliased discs on the pixel grid). Below ~2 px of CoC the two
+    differ by more than most effects: on such data (``tests/helpers/foreign_dp.py``, ``sampling="box"``)
+    the base model with the triangle alone erred 10 x the noise at 0.5-2 px of CoC on fine texture, and
+    five of the nine effects were not found (``benchmarks/foreign_sweep.py``).
+    """
     base = BaseModel()
     # a first guess of the gain: ratio of means
     num = sum(float((s.batch.left + s.batch.right).mul(s.score).sum()) for s in fit)
     den = sum(float(s.batch.sharp.mul(s.score).sum()) for s in fit)
     base.params["gain"] = num / max(den, 1e-12)
-    fit_parameters(base, [(base, "rim_softness_px"), (base, "gain")], [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
+    batches, fields, masks = [s.batch for s in fit], [s.field for s in fit], [s.score for s in fit]
+    fit_parameters(base, [(base, "rim_softness_px"), (base, "gain")], batches, fields, masks=masks, iters=iters)
+    # then the sampling, from the triangle's optimum: a joint fit from the default rim (0.5 px) stopped in a
+    # local minimum (box + 0.24 px of rim for triangle-sampled data, 5 x the fit error of triangle + 0)
+    fit_parameters(base, [(base, "rim_softness_px"), (base, "gain"), (base, "pixel_box")], batches, fields, masks=masks,
+                   iters=max(iters // 2, 1))
     return base
 
 
 def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, refit_rim: bool = True) -> tuple[BaseModel, list[tuple[object, str]], float]:
     """The base model plus ``name``'s component, its parameters fitted on the fit samples (with the base
-    model's gain, and its rim softness when ``refit_rim`` or the component changes blur).
+    model's gain, and its rim softness and pixel sampling, :data:`PSF_NUISANCE`, when ``refit_rim`` or the
+    component changes blur).
 
     Returns:
         (model, fitted targets, final fit MSE).
@@ -279,7 +300,7 @@ def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, re
     # disparity; refitted with disparity_scale it falls to 0.25 px and the held-out gain rises by 1.3 dB)
     targets: list[tuple[object, str]] = [(comp, n) for n in fittable_names(comp, fit)] + [(model, "gain")]
     if refit_rim or comp.changes_psf or not comp.post_only:
-        targets.append((model, "rim_softness_px"))
+        targets += [(model, k) for k in PSF_NUISANCE]
     cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
     return model, targets, cost
 
@@ -407,8 +428,7 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
     order = sorted(fitted, key=lambda n: fitted[n][2])
     for name in order[: cfg.refine_top]:
         model, targets, _ = fitted[name]
-        if (model, "rim_softness_px") not in targets:
-            targets = targets + [(model, "rim_softness_px")]
+        targets = targets + [(model, k) for k in PSF_NUISANCE if (model, k) not in targets]
         cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
         fitted[name] = (keep_rim_if_better(model, base, det), targets, cost)
     findings = []
@@ -533,7 +553,7 @@ def discriminate(findings: list[Finding], base: BaseModel, fit: list[Sample], de
         comp.params = dict(f.model.components[-1].params)
         model = model.with_component(comp)
         targets += [(comp, n) for n in fittable_names(comp, fit)]
-    targets += [(model, "gain"), (model, "rim_softness_px")]
+    targets += [(model, "gain")] + [(model, k) for k in PSF_NUISANCE]
     fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
     base_su, _, owners = tile_mse(base, det, cfg.tile_px)
     su = {f.effect: f.tile_sse if f.tile_sse is not None else tile_mse(f.model, det, cfg.tile_px)[0] for f in (a, b)}

@@ -54,6 +54,9 @@ class PSFShape:
             rim, < 0 brighter centre), clipped at 0; the PSF is renormalised.
         split: weight of the half-aperture split: the left PSF is ``disc * ((1 - split)/2 + split * half)``,
             so the L/R centroid separation is ``split`` times the ideal 4c/(3 pi) (1 = ideal hard split).
+        pixel_box: how the PSF becomes pixel weights, from 0 (a 2-px triangle: the sharp image is linearly
+            interpolated between pixel centres) to 1 (a 1-px box: each sharp pixel is a uniform square of
+            light); see :func:`_half_disc_kernel`.
     """
 
     coc_px: Tensor
@@ -62,6 +65,7 @@ class PSFShape:
     rim2: Tensor
     rim4: Tensor
     split: Tensor
+    pixel_box: Tensor | float = 0.0
 
 
 @dataclass
@@ -192,10 +196,11 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     coc = shape.coc_px
     K = coc.shape[0]
 
-    def per_node(t: Tensor) -> list[float]:
+    def per_node(t: Tensor | float) -> list[float]:
+        t = torch.as_tensor(t)
         return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
 
-    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split)]
+    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box)]
     kernels = []
     for k in range(K):
         node = tuple(c[k] for c in cols)
@@ -219,7 +224,7 @@ def _stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
 
 
 def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                      supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
+                      pixel_box: float = 0.0, supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
 
     With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
@@ -228,19 +233,24 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
         D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
         P(\rho) = \max(0, 1 + a_2 q + a_4 q^2), \quad q = \min(\rho / R', 1)^2
         S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < 0], \quad k' = k R / R'
-        H_l = \mathrm{tent}(G_\sigma * (D P S)) / \sum
+        H_l = ((1 - \beta) \mathrm{tent} + \beta\, \mathrm{box})(G_\sigma * (D P S)) / \sum
 
     ``G_sigma`` is a Gaussian of standard deviation ``softness_px`` (the lens' residual blur, px). ``tent``
     samples the fine PSF at pixel centres through a 2-px triangle: the sharp image is reconstructed by
     linear interpolation between pixel centres, so a sub-pixel disc keeps its exact centroid
     (:math:`-2 c / (3 \pi)` px for the left view), i.e. DP disparity does not vanish below 1 px, and
-    ``c = 0`` is exactly the identity. ``supersample`` is a lower bound on ``ss``.
+    ``c = 0`` is exactly the identity. ``box`` integrates it over each pixel's area instead (each sharp
+    pixel a uniform square of light, as a renderer that draws anti-aliased discs on the pixel grid
+    assumes): a half disc inside the centre pixel then stays there (centroid 0 up to ~0.7 px of CoC,
+    -0.10 px at 1.3 px against -0.28 exact). ``beta = pixel_box``; ``c = 0`` is the identity for every
+    ``beta``. ``supersample`` is a lower bound on ``ss``.
 
     Returns:
         (n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
     """
     coc, scale_t, soft, a2, a4, split_t = (torch.tensor(v, device=device, dtype=torch.float32)
                                             for v in (coc_px, scale, softness_px, rim2, rim4, split))
+    beta = min(max(float(pixel_box), 0.0), 1.0)
     R = coc.abs() * scale_t / 2  # px
     sigma = soft.clamp(min=0.0)
     half = int(math.ceil(float(R + 3 * sigma))) + 2
@@ -259,9 +269,12 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
     w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
     tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
     p = (ss - 1) // 2
-    w = F.pad(w[None, None], (p, p, p, p))
-    w = F.conv2d(F.conv2d(w, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[0, 0]
-    return w / w.sum().clamp(min=1e-12)
+    wp = F.pad(w[None, None], (p, p, p, p))
+    out = F.conv2d(F.conv2d(wp, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[0, 0]
+    if beta > 0:  # pixel i holds the fine samples i ss .. i ss + ss - 1, centred on its centre like the tent's
+        box = w.reshape(n, ss, n, ss).sum(dim=(1, 3)) / (ss * ss)
+        out = (1.0 - beta) * out + beta * box
+    return out / out.sum().clamp(min=1e-12)
 
 
 def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
@@ -539,25 +552,33 @@ class BaseModel(DPSimulator):
         config: renderer discretisation.
         sharp_deblur_iters: Van Cittert iterations that undo the sharp frame's own f/22 blur before
             rendering (:func:`sharp_radiance`; 0 treats the sharp frame as a pinhole image).
+        pixel_box: how PSFs become pixel weights, 0 (2-px triangle: linear interpolation of the sharp image)
+            to 1 (1-px box: pixel-area integration), :class:`PSFShape`; a renderer-discretisation parameter
+            that :func:`dp5k_diagnose.detect.fit_base` fits with the rim softness and the gain.
     """
 
     name: ClassVar[str] = "base"
 
     def __init__(self, rim_softness_px: float = 0.5, gain: float = 1.0, components: Sequence[Component] = (), config: RenderConfig | None = None,
-                 sharp_deblur_iters: int = 2) -> None:
+                 sharp_deblur_iters: int = 2, pixel_box: float = 0.0) -> None:
         super().__init__()
         self.sharp_deblur_iters = int(sharp_deblur_iters)
-        self.params: dict[str, float] = {"rim_softness_px": float(rim_softness_px), "gain": float(gain)}
-        self.bounds: dict[str, tuple[float, float]] = {"rim_softness_px": (0.0, 6.0), "gain": (0.05, 20.0)}
-        self.steps: dict[str, float] = {"rim_softness_px": 0.15, "gain": 0.01}
+        self.params: dict[str, float] = {"rim_softness_px": float(rim_softness_px), "gain": float(gain), "pixel_box": float(pixel_box)}
+        self.bounds: dict[str, tuple[float, float]] = {"rim_softness_px": (0.0, 6.0), "gain": (0.05, 20.0), "pixel_box": (0.0, 1.0)}
+        self.steps: dict[str, float] = {"rim_softness_px": 0.15, "gain": 0.01, "pixel_box": 0.25}
         self.components = torch.nn.ModuleList(list(components))
         self.config = config or RenderConfig()
 
     # -- composition -----------------------------------------------------------------------------
     def with_component(self, comp: Component) -> "BaseModel":
         """A new model with the same base parameters and components plus ``comp``."""
-        m = BaseModel(self.params["rim_softness_px"], self.params["gain"], list(self.components) + [comp], self.config, self.sharp_deblur_iters)
-        return m
+        return self.replaced(list(self.components) + [comp])
+
+    def replaced(self, components: Sequence[Component] | None = None, **params: float) -> "BaseModel":
+        """A new model with these ``components`` (default: the same) and base ``params`` changed, the rest kept."""
+        p = {**self.params, **params}
+        return BaseModel(p["rim_softness_px"], p["gain"], list(self.components) if components is None else list(components),
+                         self.config, self.sharp_deblur_iters, p["pixel_box"])
 
     def describe(self) -> dict[str, object]:
         return {"base": dict(self.params), "sharp_deblur_iters": self.sharp_deblur_iters,
@@ -573,6 +594,7 @@ class BaseModel(DPSimulator):
             rim2=one * 0.0,
             rim4=one * 0.0,
             split=one,
+            pixel_box=one * self.params["pixel_box"],
         )
         for c in self.components:
             shape = c.shape(shape, channel, r2)
@@ -638,7 +660,7 @@ class BaseModel(DPSimulator):
     def fit(self, batches: list[DPBatch], fields: list[Tensor] | None = None) -> dict[str, float]:  # type: ignore[override]
         """Fit ``rim_softness_px`` and ``gain`` on training batches (measured views required)."""
         fit_parameters(self, [(self, "rim_softness_px"), (self, "gain")], batches, fields)
-        return dict(self.params)
+        return {k: self.params[k] for k in ("rim_softness_px", "gain")}
 
 
 def _masked_residual(model: BaseModel, batch: DPBatch, field: Tensor | None, layers: tuple[Tensor, Tensor] | None = None,
