@@ -240,7 +240,10 @@ class FrontBackAsymmetry(Component):
         super().__init__()
         self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0}
         self.fit_names = list(self.params)
-        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (-0.45, 6.0), "front_size_factor": (0.5, 2.0)}
+        # in front the disc can be centre-heavy or flat, not rim-heavy: a rim on both sides is no asymmetry
+        # but psf_profile (with front_center_gain down to -0.45 it fitted a quadratic rim planted on both
+        # sides better than psf_profile's quartic one, and was named in its place)
+        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (0.0, 6.0), "front_size_factor": (0.5, 2.0)}
         self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03}
 
     SIDE_MIN_COC_PX = 1.5

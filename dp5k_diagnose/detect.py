@@ -123,6 +123,8 @@ class Finding:
     model: BaseModel | None = field(default=None, repr=False)
     tile_sse: np.ndarray | None = field(default=None, repr=False)
     """Per-tile squared errors of ``model`` on the detection set (:func:`tile_mse`), kept for the nested test."""
+    held: tuple[str, ...] = ()
+    """Parameters of the effect's component held neutral: the fit data does not show where they act."""
 
     @property
     def rank_score(self) -> float:
@@ -452,10 +454,30 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
         if held:
             text += f" ({', '.join(held)} not fitted: too little of the fit data is where they act; held neutral)"
         log.info("%s: effect %.4f t %.2f p %.2g params %s", name, effect, t, p, params)
-        findings.append(Finding(name, t, p, effect, detected, params, text, model, su))
+        findings.append(Finding(name, t, p, effect, detected, params, text, model, su, tuple(held)))
+    one_sided_asymmetry_is_a_profile(findings)
     findings = [remeasure_noise(f, findings, fit, det, cfg, base_total / max(float(base_co.sum()), 1.0)) for f in findings]
     findings.sort(key=lambda f: (not f.detected, -f.rank_score))
     return findings
+
+
+def one_sided_asymmetry_is_a_profile(findings: list[Finding]) -> None:
+    """Do not name front_back_asymmetry where the fit data shows blur on one side of focus only and
+    psf_profile is detected too (in place: its ``detected`` is cleared and its explanation says why).
+
+    An asymmetry between front and back needs both sides; seen from one side, a rim-heavy (or centre-heavy)
+    disc is psf_profile's claim, and which of the two fits better then depends only on their radial
+    forms (front_back_asymmetry's back rim is quadratic in rho/R, psf_profile's quartic): on another
+    renderer's set with a planted quadratic rim and blur mostly behind focus, front_back_asymmetry was
+    named at 0.95 of the systematic error against psf_profile's 0.94.
+    """
+    by = {f.effect: f for f in findings}
+    fba, psf = by.get("front_back_asymmetry"), by.get("psf_profile")
+    if fba is None or psf is None or not (fba.detected and psf.detected and fba.held):
+        return
+    fba.detected = False
+    fba.explanation += "; not named: the fit data shows blur on one side of focus only, where it is psf_profile's non-uniform disc"
+    log.info("front_back_asymmetry not named: one side of focus only (%s held), psf_profile detected", ", ".join(fba.held))
 
 
 def remeasure_noise(noise: Finding, findings: list[Finding], fit: list[Sample], det: list[Sample], cfg: DetectConfig,
