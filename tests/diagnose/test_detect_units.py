@@ -382,3 +382,19 @@ def test_noise_is_measured_again_against_the_detected_effect() -> None:
     assert "against the base model with disparity_scale" in again.explanation
     # nothing else detected: the first measurement stands
     assert detect.remeasure_noise(noise, [noise, dataclasses.replace(effect, detected=False)], s, [], cfg, 1e-5) is noise
+
+
+def test_effect_test_is_not_fooled_by_a_few_pairs_with_large_gains() -> None:
+    """Per-pair log MSE ratios of a planted focus offset on another renderer's set: two pairs gain a lot, the
+    rest a little. The t test's p is 0.065; the signed-rank test names it. With fewer than 6 units the t test
+    is used (the signed-rank test's smallest p would be 2^-n); a null sample stays insignificant."""
+    d = np.array([-0.023, -0.001, 0.003, 0.003, 0.004, 0.02, 0.023, 0.023, 0.065, 0.067, 0.082, 0.176, 2.015, 2.669])
+    assert detect.one_sided_t(d)[1] > 0.05
+    z, p = detect.effect_test(d)
+    assert p < 0.01 and z > 2
+    assert detect.effect_test(-d)[1] > 0.9
+    small = np.array([0.5, 0.6, 0.7, 0.8])
+    assert detect.effect_test(small) == detect.one_sided_t(small)
+    rng = np.random.default_rng(1)
+    rate = np.mean([detect.effect_test(rng.normal(0, 1, 16))[1] < 0.05 for _ in range(400)])
+    assert rate < 0.08
