@@ -17,7 +17,8 @@ from dp5k_common.dataset import DatasetReader
 from dp5k_demo.build_report import truth_depth_at
 from dp5k_demo.pipeline import hidden_effect
 
-pytestmark = pytest.mark.slow
+# one worker runs the whole module, so its module fixture runs once under pytest-xdist
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("demo")]
 
 
 @pytest.fixture(scope="module")
