@@ -53,8 +53,12 @@ def test_an_unstated_sharp_is_read_the_way_that_predicts_the_detection_pairs(all
     studio.make_dataset(root, scenes=8, size=(160, 96), f_numbers=(1.8, 2.8), cameras=(0, 1), seed=5,
                         all_in_focus_sharp=all_in_focus)
     cfg = DiagnoseConfig(effects=("disparity_scale", "psf_profile"), n_boot=200, det_pairs=8)
-    stated = diagnose_base(root, cfg).sharp_reading
-    assert (stated.source, stated.f_number, stated.detect_mse.keys()) == ("params.json", None, {"stated"})
+    # a stated key is used as it is, and --sharp-f-number overrides the choice: checked on one of the two
+    # sets (neither depends on how sharp was rendered; each costs a whole diagnose run)
+    check_stated_and_forced = not all_in_focus
+    if check_stated_and_forced:
+        stated = diagnose_base(root, cfg).sharp_reading
+        assert (stated.source, stated.f_number, stated.detect_mse.keys()) == ("params.json", None, {"stated"})
 
     _strip_key(root)
     diag = diagnose_base(root, cfg)
@@ -65,6 +69,8 @@ def test_an_unstated_sharp_is_read_the_way_that_predicts_the_detection_pairs(all
     # the chosen reading is the one the held-out gain and the report use
     assert diag.to_json()["sharp_reading"]["f_number"] == r.f_number
 
+    if not check_stated_and_forced:
+        return
     forced = diagnose_base(root, DiagnoseConfig(effects=cfg.effects, n_boot=200, det_pairs=8, sharp_f_number=22.0)).sharp_reading
     assert (forced.source, forced.f_number, set(forced.detect_mse)) == ("--sharp-f-number", 22.0, {"22"})
     assert forced.detect_mse["22"] == pytest.approx(r.detect_mse["22"])
