@@ -1,12 +1,16 @@
 """``dp5k demo --scale small`` end to end: the report exists, and its numbers equal their sources.
 
-The demo runs once per test session (module fixture); every check reads its outputs.
+The demo runs once per test session (module fixture, shared by pytest-xdist's workers); every check reads its
+outputs.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
+
+from filelock import FileLock
 
 import numpy as np
 import pytest
@@ -17,15 +21,20 @@ from dp5k_common.dataset import DatasetReader
 from dp5k_demo.build_report import truth_depth_at
 from dp5k_demo.pipeline import hidden_effect
 
-# one worker runs the whole module, so its module fixture runs once under pytest-xdist
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("demo")]
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def demo_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("demo")
-    result = CliRunner().invoke(main, ["-q", "demo", str(out), "--scale", "small", "--seed", "0"])
-    assert result.exit_code == 0, result.output
+    """The demo's output directory. Under pytest-xdist every worker that runs a test of this module needs it:
+    the first to take the lock runs the demo in the session's shared temporary directory, the others wait
+    for it and reuse it (a failed run leaves no report.json, so the next worker runs it again)."""
+    base = tmp_path_factory.getbasetemp()
+    out = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "demo-small-seed0"
+    with FileLock(str(out) + ".lock"):
+        if not (out / "report.json").is_file():
+            result = CliRunner().invoke(main, ["-q", "demo", str(out), "--scale", "small", "--seed", "0"])
+            assert result.exit_code == 0, result.output
     return out
 
 

@@ -17,8 +17,7 @@ from dp5k_process.validate import plane_error, validate_depth
 from .sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
 from .truth import half, seen_by_both
 
-# one worker runs the whole module, so its module fixture runs once under pytest-xdist
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("process_e2e")]
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
