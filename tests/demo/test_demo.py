@@ -10,11 +10,10 @@ import json
 import os
 from pathlib import Path
 
-from filelock import FileLock
-
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from filelock import FileLock
 
 from dp5k_cli import main
 from dp5k_common.dataset import DatasetReader
