@@ -29,12 +29,12 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "process": ("dp5k_process.cli", "process_command", "Process raw sessions into the dataset format v1."),
     "validate-depth": ("dp5k_process.cli", "validate_depth_command", "Depth accuracy against a ChArUco wall (Eq. 4)."),
     "check": ("dp5k_common.check", "check_command", "Validate a format-v1 dataset pair by pair."),
-    "studio": ("dp5k_capture.sim.studio.cli", "studio_group", "The virtual studio: scenes, renders, datasets with effects."),
+    "studio": ("dp5k_studio.cli", "studio_group", "The virtual studio: scenes, renders, datasets with effects."),
     "train": ("neural_dp.cli", "train_command", "Train the Neural DP Simulator on a dataset."),
     "evaluate": ("neural_dp.cli", "evaluate_command", "Compare every DP simulator: masked MAE / PSNR / SSIM (Table 2)."),
     "synthesize": ("neural_dp.cli", "synthesize_command", "Synthesize DP pairs from RGBD frames with any simulator."),
     "diagnose": ("dp5k_diagnose.cli", "diagnose_command", "Name what a DP simulator gets wrong, extend it, measure the gain."),
-    "import": ("dp5k_diagnose.cli", "import_command", "Import public DP data (sdirt) into the dataset format v1."),
+    "import": ("dp5k_import.cli", "import_command", "Import public DP data (sdirt) into the dataset format v1."),
     "demo": ("dp5k_demo.cli", "demo_command", "Run the whole pipeline on the virtual studio; write a report."),
 }
 

@@ -20,7 +20,7 @@ os.environ.setdefault("DP5K_PROGRESS", "0")
 
 
 def main() -> None:
-    from dp5k_capture.sim.studio.dataset import make_dataset
+    from dp5k_studio.dataset import make_dataset
     from dp5k_diagnose.run import diagnose_base
 
     ap = argparse.ArgumentParser()

@@ -31,7 +31,7 @@ from neural_dp.batch import DPBatch  # noqa: E402
 from neural_dp.losses import dp_loss  # noqa: E402
 from neural_dp.model import ModelConfig  # noqa: E402
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs  # noqa: E402
-from neural_dp.simulators.registry import PEERS, base_available, get_simulator  # noqa: E402
+from neural_dp.simulators.registry import PEERS, get_simulator  # noqa: E402
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:
@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
           f"median {float(coc.median()):.1f} px", flush=True)
     print("| simulator | size | MP/s | s/image | peak MiB |")
     print("|---|---|---|---|---|", flush=True)
-    names = list(PEERS) + (["base"] if base_available() else [])
+    names = list(PEERS) + ["base"]
     for name in names:
         sim = get_simulator(name).to(args.device)
         with torch.no_grad():

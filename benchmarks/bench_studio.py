@@ -14,8 +14,8 @@ import os
 import tempfile
 import time
 
-from dp5k_capture.sim.studio import LensSetting, make_dataset, make_rig, make_scene, render_dp
-from dp5k_capture.sim.studio.render import view_geometry
+from dp5k_studio import LensSetting, make_dataset, make_rig, make_scene, render_dp
+from dp5k_studio.render import view_geometry
 
 
 def bench(size: tuple[int, int], scene_name: str, f_number: float, supersample: int) -> tuple[float, float, float]:

@@ -41,7 +41,7 @@ def _fmt(v: object) -> str:
 
 
 def main() -> None:
-    from dp5k_capture.sim.studio.dataset import NOISE_SHOT, make_dataset
+    from dp5k_studio.dataset import NOISE_SHOT, make_dataset
     from dp5k_common.effects import EFFECT_NAMES
     from dp5k_diagnose.run import DiagnoseConfig, diagnose_base
 

@@ -22,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dp5k_capture.sim.studio.dataset import make_dataset  # noqa: E402  (benchmarks may use the world)
+from dp5k_studio.dataset import make_dataset  # noqa: E402  (benchmarks may use the world)
 from neural_dp.config import load_config  # noqa: E402
 from neural_dp.evaluate import evaluate  # noqa: E402
 from neural_dp.simulators.registry import available_simulators  # noqa: E402

@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 
 def _sim_scene(scene: str) -> str | int:
     """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
-    from .sim.studio import PRESETS
+    from dp5k_studio import PRESETS
 
     if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
         return scene

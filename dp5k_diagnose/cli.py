@@ -1,4 +1,4 @@
-"""``dp5k diagnose`` and ``dp5k import`` commands."""
+"""The ``dp5k diagnose`` command."""
 
 from __future__ import annotations
 
@@ -76,26 +76,3 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         click.echo(f"neural extension ({ne['extension'].get('kind', 'multi-scale')}): PSNR gain over an equally fine-tuned control "
                    f"{gc['psnr_after'] - gc['psnr_before']:+.3f} dB (95% CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}])")
     click.echo(f"report: {out / 'report.md'}")
-
-
-@click.command("import")
-@click.argument("kind", type=click.Choice(["sdirt"]))
-@click.argument("src", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
-@click.option("--tile", default="192x128", show_default=True, help="Cut each frame into WxH tiles (pairs); 'none' keeps whole frames.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the scene split.")
-def import_command(kind: str, src: Path, out: Path, tile: str, seed: int) -> None:
-    """Import public DP data (KIND: sdirt) from SRC into a format-v1 dataset at OUT."""
-    from .importers import import_dataset
-
-    if not src.exists():
-        raise BadInputError("source folder not found", where=src)
-    size = None
-    if tile.lower() != "none":
-        try:
-            w, h = (int(v) for v in tile.lower().split("x"))
-        except ValueError:
-            raise BadInputError(f"--tile must be WxH or none, got {tile!r}", where="--tile") from None
-        size = (w, h)
-    splits = import_dataset(kind, src, out, tile=size, seed=seed)
-    click.echo(json.dumps({k: len(v) for k, v in splits.items()}))

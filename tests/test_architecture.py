@@ -1,14 +1,22 @@
-"""The world (studio) and the models being judged never import each other."""
+"""The layering of docs/architecture.md: the world (dp5k_studio) and the models being judged (neural_dp) never
+import each other, and each stage imports only what lies below it."""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
+STAGES = ("dp5k_capture", "dp5k_process", "neural_dp", "dp5k_diagnose", "dp5k_import", "dp5k_studio", "dp5k_demo", "calib")
 
-def imported_modules(package_dir: Path) -> set[str]:
+
+def imported_modules(package: str) -> set[str]:
+    """Absolute module names imported anywhere in ROOT/``package`` (fails when the folder is missing)."""
+    package_dir = ROOT / package
+    assert package_dir.is_dir() and (package_dir / "__init__.py").is_file(), f"{package_dir} is not a package"
     found: set[str] = set()
     for path in package_dir.rglob("*.py"):
         tree = ast.parse(path.read_text(), filename=str(path))
@@ -20,18 +28,30 @@ def imported_modules(package_dir: Path) -> set[str]:
     return found
 
 
+def offending(package: str, forbidden: tuple[str, ...]) -> list[str]:
+    return sorted(m for m in imported_modules(package) if m.split(".")[0] in forbidden)
+
+
 def test_models_never_import_the_world() -> None:
-    mods = imported_modules(ROOT / "neural_dp")
-    assert not [m for m in mods if m.startswith("dp5k_capture")], mods
+    assert not offending("neural_dp", ("dp5k_studio", "dp5k_capture", "dp5k_diagnose", "dp5k_demo"))
 
 
-def test_world_never_imports_the_models() -> None:
-    sim = ROOT / "dp5k_capture" / "sim"
-    mods = imported_modules(sim) if sim.exists() else set()
-    assert not [m for m in mods if m.startswith(("neural_dp", "dp5k_diagnose"))], mods
+def test_world_never_imports_the_models_or_the_capture_layer() -> None:
+    assert not offending("dp5k_studio", ("neural_dp", "dp5k_diagnose", "dp5k_capture", "dp5k_process", "dp5k_import", "dp5k_demo"))
+
+
+def test_simulated_devices_render_through_the_world_only() -> None:
+    assert not offending("dp5k_capture", ("neural_dp", "dp5k_diagnose", "dp5k_process", "dp5k_import", "dp5k_demo"))
+
+
+def test_importers_are_a_stage_below_diagnose() -> None:
+    assert not offending("dp5k_import", ("dp5k_diagnose", "neural_dp", "dp5k_studio", "dp5k_capture", "dp5k_demo"))
 
 
 def test_common_imports_no_stage() -> None:
-    mods = imported_modules(ROOT / "dp5k_common")
-    stages = ("dp5k_capture", "dp5k_process", "neural_dp", "dp5k_diagnose", "calib")
-    assert not [m for m in mods if m.startswith(stages)], mods
+    assert not offending("dp5k_common", STAGES)
+
+
+def test_a_missing_package_fails_the_check() -> None:
+    with pytest.raises(AssertionError, match="not a package"):
+        imported_modules("no_such_package")

@@ -2,7 +2,7 @@
 headless pattern window feeding the projector's HDMI input, and the world they photograph.
 
 The world is a :class:`~dp5k_capture.sim.eos_body.BodyOptics`: :class:`StudioOptics` renders through the
-virtual studio (``dp5k_capture.sim.studio``); :class:`FlatOptics` is a tiny textured plane used by the
+virtual studio (``dp5k_studio``); :class:`FlatOptics` is a tiny textured plane used by the
 protocol and fault tests (fast, no studio). Both write each exposure as a two-frame Dual Pixel DNG with
 ``dp5k_common.rawfile.write_dual_pixel_dng`` (or one frame when the body's DPRAW setting is off).
 """
@@ -112,7 +112,7 @@ class FlatOptics:
 
 
 class StudioOptics:
-    """The virtual studio as the bodies' world (``dp5k_capture.sim.studio``).
+    """The virtual studio as the bodies' world (``dp5k_studio``).
 
     Each exposure shows the projector's current output (``projector.lit_image()``: the pattern window's
     framebuffer while the projector is on, unmuted and on HDMI) in the studio and renders camera ``i``
@@ -130,9 +130,9 @@ class StudioOptics:
 
     def __init__(self, scene: str | int, projector: SimulatedEBU42, scale: float | str = 60, seed: int = 0,
                  effects: Any = None) -> None:
-        from .studio import Studio, make_rig, make_scene
+        from dp5k_studio import Studio, make_rig, make_scene
 
-        from .studio import plane_scene
+        from dp5k_studio import plane_scene
 
         self.srig = make_rig(scale, seed=seed)
         self.scene_studio = Studio(make_scene(scene, self.srig), self.srig, effects, seed=seed)
@@ -142,7 +142,7 @@ class StudioOptics:
             # the depth-validation scene: the printed board is pasted on the wall for every shot
             from calib.board import WALL_BOARD
 
-            from .studio import wall_board_pose
+            from dp5k_studio import wall_board_pose
 
             self.scene_studio.set_board_pose(wall_board_pose(self.scene_studio.scene, WALL_BOARD.size_m), WALL_BOARD)
         self._active = self.scene_studio
@@ -172,7 +172,7 @@ class StudioOptics:
         any surface at the target's depth (the same focus distance), then to the nearest pixel whose window
         is at least half lit target (or lit at its depth), then the nearest lit pixel of either, last the
         nearest pixel at that depth. Both bodies thus focus on the same surface, or at the same distance."""
-        from .studio.geometry import cast
+        from dp5k_studio.geometry import cast
 
         x, y = (int(v) for v in self.studio.focus_point_px(camera))
         cam = self.srig.cameras[camera]

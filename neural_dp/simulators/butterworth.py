@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from ..batch import DPBatch
 from .interface import DPSimulator
-from .layered import render_layered
+from .peer_layers import render_layered
 
 
 def butterworth_highpass(dist_px: NDArray[np.float64], cutoff_px: float, order: int) -> NDArray[np.float64]:

@@ -12,7 +12,7 @@ disk's edge. In the continuous limit, for a disk of radius :math:`r` centred at 
 a disk times a linear ramp along x in every row. In dp5k's convention (docs/conventions.md) a point behind
 focus (C > 0) lands on the LEFT half of its disc in the left view, so the left ramp rises toward -x for
 C > 0 and toward +x for C < 0. As in the paper's comparison (Sec. 5.2.1) the PSF size is the CoC radius,
-:math:`r = |C| / 2`, and scenes are rendered by depth layers (:mod:`.layered`).
+:math:`r = |C| / 2`, and scenes are rendered by depth layers (:mod:`.peer_layers`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from ..batch import DPBatch
 from .interface import DPSimulator
-from .layered import render_layered
+from .peer_layers import render_layered
 
 SUPERSAMPLE = 8
 """Sub-samples per pixel side used to anti-alias the disk edge (like MATLAB's ``fspecial('disk')``)."""

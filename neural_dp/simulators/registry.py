@@ -6,14 +6,16 @@ name       simulator                                             needs
 disk       translating-disk PSF, layered (Punnappurath 2020)     -
 butterworth Butterworth PSF, layered (Abuolaim 2021)             -
 raytrace   thin-lens ray tracing, aperture points (Pan 2021)     -
-base       the physical base model (``neural_dp.simulators.base``) the module (optional)
+base       the physical base model (``neural_dp.simulators.base``) -
 neural     the Neural DP Simulator (Li et al. 2023)              a checkpoint
 ========== ===================================================== =========================
+
+Every simulator is the project's own code, so an import error is a bug and propagates: it is never taken
+for an absent simulator (none of them depends on an optional third-party extra).
 """
 
 from __future__ import annotations
 
-import importlib
 import os
 from collections.abc import Callable
 
@@ -41,8 +43,9 @@ def _raytrace() -> type[DPSimulator]:
 
 
 def _base() -> type[DPSimulator]:
-    module = importlib.import_module("neural_dp.simulators.base")
-    return module.BaseModel
+    from .base import BaseModel
+
+    return BaseModel
 
 
 def _neural() -> type[DPSimulator]:
@@ -62,37 +65,20 @@ PEERS: tuple[str, ...] = ("disk", "butterworth", "raytrace")
 """The handcrafted peers of the paper's Table 2, in its column order."""
 
 
-def base_available() -> bool:
-    """Whether the physical base model module exists (it is written by another part of the project)."""
-    try:
-        _base()
-    except (ImportError, AttributeError):
-        return False
-    return True
-
-
 def available_simulators(with_neural: bool = True) -> list[str]:
-    """Names usable right now, in Table 2 order (peers, base when present, neural)."""
-    names = list(PEERS)
-    if base_available():
-        names.append("base")
-    if with_neural:
-        names.append("neural")
-    return names
+    """Names in Table 2 order (peers, base, then neural when a checkpoint is at hand)."""
+    return list(PEERS) + ["base"] + (["neural"] if with_neural else [])
 
 
 def simulator_class(name: str) -> type[DPSimulator]:
     """The class registered under ``name``.
 
     Raises:
-        BadInputError: unknown name, or the base model module is missing.
+        BadInputError: unknown name.
     """
     if name not in _FACTORIES:
         raise BadInputError(f"unknown simulator {name!r} (known: {', '.join(_FACTORIES)})", where="simulator")
-    try:
-        return _FACTORIES[name]()
-    except (ImportError, AttributeError) as exc:
-        raise BadInputError(f"simulator {name!r} is not available ({exc})", where="simulator") from None
+    return _FACTORIES[name]()
 
 
 def get_simulator(name: str, checkpoint: str | os.PathLike[str] | None = None) -> DPSimulator:

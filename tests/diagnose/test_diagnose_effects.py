@@ -15,7 +15,7 @@ import pytest
 
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 
-studio = pytest.importorskip("dp5k_capture.sim.studio.dataset")
+studio = pytest.importorskip("dp5k_studio.dataset")
 
 CASES = (*EFFECT_NAMES, NO_EFFECT)
 SIZE = (160, 96)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dp5k_capture.sim.studio.dataset import make_dataset
+from dp5k_studio.dataset import make_dataset
 from dp5k_common.dataset import DatasetReader
 from dp5k_diagnose.neural_reach import diagnose_neural, format_table
 from neural_dp.config import DataConfig, OptimConfig, TrainConfig

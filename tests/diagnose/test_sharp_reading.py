@@ -17,7 +17,7 @@ import torch
 from dp5k_diagnose.data import Sample, read_sharp_at
 from neural_dp.batch import DPBatch
 
-studio = pytest.importorskip("dp5k_capture.sim.studio.dataset")
+studio = pytest.importorskip("dp5k_studio.dataset")
 
 
 def _strip_key(root: Path) -> None:

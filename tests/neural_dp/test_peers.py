@@ -11,7 +11,7 @@ import torch
 from neural_dp.batch import DPBatch
 from neural_dp.simulators.butterworth import ButterworthParams, butterworth_highpass, butterworth_psf, butterworth_ring
 from neural_dp.simulators.disk import translating_disk_psf
-from neural_dp.simulators.layered import render_layered
+from neural_dp.simulators.peer_layers import render_layered
 from neural_dp.simulators.raytrace import render_raytrace
 from neural_dp.simulators.registry import PEERS, get_simulator
 

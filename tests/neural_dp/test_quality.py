@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from dp5k_capture.sim.studio.dataset import make_dataset
+from dp5k_studio.dataset import make_dataset
 from neural_dp.config import load_config
 from neural_dp.evaluate import evaluate
 from neural_dp.simulators.registry import PEERS

@@ -14,9 +14,9 @@ import numpy as np
 
 from calib.board import DEFAULT_BOARD
 from dp5k_capture.patterns import projection, projection_count
-from dp5k_capture.sim.studio.rig import make_rig
-from dp5k_capture.sim.studio.scenes import make_scene, plane_scene
-from dp5k_capture.sim.studio.studio import Studio
+from dp5k_studio.rig import make_rig
+from dp5k_studio.scenes import make_scene, plane_scene
+from dp5k_studio.studio import Studio
 from dp5k_common.io import sha256_file
 from dp5k_common.rawfile import write_dual_pixel_dng
 
@@ -37,9 +37,9 @@ shots; a hand-held board in front of the scene would be partly hidden by the sce
 
 def wall_scene(yaw_deg: float, occluder: bool = False):
     """The "wall" preset's wall at 2.2 m turned by ``yaw_deg``; ``occluder`` adds a box hiding part of the board."""
-    from dp5k_capture.sim.studio.geometry import Box
-    from dp5k_capture.sim.studio.scenes import Scene, _wall
-    from dp5k_capture.sim.studio.textures import TextureSpec
+    from dp5k_studio.geometry import Box
+    from dp5k_studio.scenes import Scene, _wall
+    from dp5k_studio.textures import TextureSpec
 
     tex = TextureSpec("noise", (0.8, 0.78, 0.74), (0.55, 0.53, 0.5), 0.2, seed=5)
     prims = [_wall(2.2, yaw_deg, tex, name="wall")]
@@ -73,7 +73,7 @@ def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 
                           shutter_s=shutter, iso=100, size=p.stat().st_size, sha256=sha256_file(p), **extra))
 
     if board_on_wall:
-        from dp5k_capture.sim.studio.scenes import wall_board_pose
+        from dp5k_studio.scenes import wall_board_pose
         studio.set_board_pose(wall_board_pose(scene, DEFAULT_BOARD.size_m))
     focus_px = [studio.focus_point_px(c) for c in (0, 1)]
     focus_m = [studio.focus_distance_m(c, focus_px[c]) for c in (0, 1)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dp5k_capture.sim.studio import EffectSet, LensSetting, render_dp
+from dp5k_studio import EffectSet, LensSetting, render_dp
 
 PITCH_MM = 36.0 / 288  # a 288 px wide output image
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calib.board import DEFAULT_BOARD, WALL_BOARD
-from dp5k_capture.sim.studio import Studio, make_rig, make_scene, wall_board_pose
+from dp5k_studio import Studio, make_rig, make_scene, wall_board_pose
 
 
 def _detect(img_green: np.ndarray):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dp5k_capture.sim.studio import EffectSet, make_dataset, pair_from_rgbd
+from dp5k_studio import EffectSet, make_dataset, pair_from_rgbd
 from dp5k_cli import main
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import BadInputError

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import EffectSet, effect_parameters, left_kernel, pair_from_rgbd, parse_effect, render_dp
-from dp5k_capture.sim.studio.dataset import NOISE_READ, NOISE_SHOT
-from dp5k_capture.sim.studio.dp_optics import coc_channels_px, fourier_shift
+from dp5k_studio import EffectSet, effect_parameters, left_kernel, pair_from_rgbd, parse_effect, render_dp
+from dp5k_studio.dataset import NOISE_READ, NOISE_SHOT
+from dp5k_studio.dp_optics import coc_channels_px, fourier_shift
 from dp5k_common.effects import EFFECT_NAMES
 from dp5k_common.errors import BadInputError
 from dp5k_common.optics import coc_diameter_px
@@ -211,7 +211,7 @@ def test_noise_effect_raises_signal_dependent_noise() -> None:
 
 
 def test_misregistration_in_the_raw_route_moves_only_dp_captures() -> None:
-    from dp5k_capture.sim.studio import Studio, make_rig, make_scene
+    from dp5k_studio import Studio, make_rig, make_scene
 
     rig = make_rig(40)
     ideal = Studio(make_scene("boxes", rig), rig, supersample=1)
@@ -227,7 +227,7 @@ def test_misregistration_in_the_raw_route_moves_only_dp_captures() -> None:
 
 @pytest.mark.parametrize("name", EFFECT_NAMES)
 def test_every_effect_acts_in_both_routes_and_is_recorded(name: str) -> None:
-    from dp5k_capture.sim.studio import Studio, make_rig, make_scene
+    from dp5k_studio import Studio, make_rig, make_scene
 
     rig = make_rig(60)
     eff = EffectSet.of(**{name: 1.5})

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import Studio, coc_channels_px, left_kernel, make_rig, plane_scene, render_dp
+from dp5k_studio import Studio, coc_channels_px, left_kernel, make_rig, plane_scene, render_dp
 from dp5k_common.optics import coc_diameter_px
 
 from .helpers import PITCH_MM, dot_views, lens, lowfreq_disparity_px, moments, textured

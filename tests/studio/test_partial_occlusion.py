@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import LensSetting, Scene, make_rig, render_dp
-from dp5k_capture.sim.studio.geometry import Quad, Sphere, cast, shade_albedo
-from dp5k_capture.sim.studio.render import pixel_rays, view_geometry
-from dp5k_capture.sim.studio.textures import TextureSpec
+from dp5k_studio import LensSetting, Scene, make_rig, render_dp
+from dp5k_studio.geometry import Quad, Sphere, cast, shade_albedo
+from dp5k_studio.render import pixel_rays, view_geometry
+from dp5k_studio.textures import TextureSpec
 
 
 def _scene() -> Scene:
@@ -93,7 +93,7 @@ def test_a_slanted_surface_shows_no_seams_between_its_depth_bins() -> None:
                 TextureSpec("flat", color_a=(0.6, 0.6, 0.6)), "slab")
     wall = Quad(np.array([-20.0, -20.0, 6.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), (40.0, 40.0),
                 TextureSpec("flat", color_a=(0.03, 0.03, 0.03)), "wall")
-    from dp5k_capture.sim.studio import Studio
+    from dp5k_studio import Studio
 
     st = Studio(Scene("slab", (wall, slab), np.array([0.0, 0.0, 3.0])), make_rig(20), supersample=1)
     rad = st.radiance(0)[:, :, 1]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import PRESETS, Studio, make_rig, make_scene
-from dp5k_capture.sim.studio.render import view_geometry
+from dp5k_studio import PRESETS, Studio, make_rig, make_scene
+from dp5k_studio.render import view_geometry
 from dp5k_common.errors import BadInputError
 
 
@@ -85,7 +85,7 @@ def test_textures_have_variety_including_dark_patches() -> None:
     assert {"noise", "stripes", "checker"} <= kinds
     assert dark >= 3
     # dark patches are really dark (low albedo that defeats structured light)
-    from dp5k_capture.sim.studio.textures import TextureSpec, evaluate
+    from dp5k_studio.textures import TextureSpec, evaluate
 
     u, v = np.meshgrid(np.linspace(0, 30, 300), np.linspace(0, 30, 300))
     alb = evaluate(TextureSpec("noise", dark_fraction=0.3, seed=1), u.ravel(), v.ravel())

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import DEFAULT_SENSOR, EffectSet, Studio, make_rig, plane_scene
-from dp5k_capture.sim.studio.sensor import bayer_channel_index
-from dp5k_capture.sim.studio.textures import TextureSpec
+from dp5k_studio import DEFAULT_SENSOR, EffectSet, Studio, make_rig, plane_scene
+from dp5k_studio.sensor import bayer_channel_index
+from dp5k_studio.textures import TextureSpec
 
 
 def _flat_studio(effects: EffectSet | None = None, seed: int = 0) -> Studio:
@@ -66,7 +66,7 @@ def test_noise_effect_raises_variance_not_mean() -> None:
 
 
 def test_f22_frame_is_sharper_than_f18() -> None:
-    from dp5k_capture.sim.studio import make_scene
+    from dp5k_studio import make_scene
 
     rig = make_rig(20)
     st = Studio(make_scene("boxes"), rig, supersample=1)

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dp5k_capture.sim.studio import Scene, Studio, make_rig, make_scene
-from dp5k_capture.sim.studio.geometry import Quad
-from dp5k_capture.sim.studio.textures import TextureSpec
+from dp5k_studio import Scene, Studio, make_rig, make_scene
+from dp5k_studio.geometry import Quad
+from dp5k_studio.textures import TextureSpec
 
 
 def _slanted_plane() -> tuple[Scene, np.ndarray, np.ndarray]:

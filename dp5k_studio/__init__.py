@@ -11,7 +11,7 @@ Units: metres for the world (``_m``), mm on the sensor and for depth in datasets
 
 Usage::
 
-    from dp5k_capture.sim.studio import make_rig, make_scene, Studio, EffectSet
+    from dp5k_studio import make_rig, make_scene, Studio, EffectSet
     rig = make_rig("small")                       # raw 336 x 224 per camera
     studio = Studio(make_scene("demo01"), rig, EffectSet.of(disparity_scale=1.0), seed=0)
     x, y = studio.focus_point_px(0)
@@ -22,7 +22,7 @@ Usage::
     studio.set_projector_image(pattern)           # (1200, 1920) Gray code etc.; None = dark
     studio.set_board_pose((R_board_to_world, t_m))  # calib.board.DEFAULT_BOARD in the scene
 
-    from dp5k_capture.sim.studio import make_dataset
+    from dp5k_studio import make_dataset
     make_dataset("out/ds", scenes=3, effects=["misregistration=1"], size=(288, 192))
 
 Exports: ``make_rig, Rig, CameraModel, ProjectorModel`` (rig.py); ``make_scene, Scene, PRESETS,

@@ -1,4 +1,6 @@
-r"""Depth-layer discretisation and blending shared by the translating-disk and Butterworth peers.
+r"""The peers' compositor: depth-layer discretisation and blending shared by the translating-disk and
+Butterworth peers. (The base model has its own, occlusion-aware one: :mod:`neural_dp.simulators.base.render`;
+the peers keep this one because it is how they were published.)
 
 The paper (Sec. 5.2.1) renders both handcrafted PSF families with the Butterworth simulator's scheme:
 quantise the signed CoC into layers, blur each layer with that layer's left/right PSF and blend. We blend

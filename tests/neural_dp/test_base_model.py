@@ -107,7 +107,7 @@ def test_surface_split_between_two_nodes_stays_opaque() -> None:
 def test_direct_and_fft_blurs_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     """Small kernels are applied by direct convolution on each node's bounding box, large ones by FFT:
     forcing every node through the FFT path gives the same views."""
-    import neural_dp.simulators.base as base_mod
+    import neural_dp.simulators.base.render as base_mod
 
     rng = np.random.default_rng(1)
     sharp = torch.from_numpy(rng.uniform(0, 1, (2, 3, 40, 56)).astype(np.float32))
@@ -156,8 +156,8 @@ def test_fit_parameters_rejects_nothing_and_keeps_bounds() -> None:
 def _studio_slanted_plane(coc_from: float, coc_to: float, f_number: float):
     """A noise-free studio render of a checkerboard plane whose CoC runs ``coc_from..coc_to`` px across x,
     with its sharp frame rendered at f/22 as format v1 says."""
-    from dp5k_capture.sim.studio.dataset import pair_from_rgbd
-    from dp5k_capture.sim.studio.dp_optics import LensSetting, coc_channels_px
+    from dp5k_studio.dataset import pair_from_rgbd
+    from dp5k_studio.dp_optics import LensSetting, coc_channels_px
 
     H, W, f, F, pitch = 48, 112, 50.0, 1500.0, 36.0 / 160
     yy, xx = np.mgrid[0:H, 0:W]
@@ -202,7 +202,7 @@ def test_an_all_in_focus_sharp_image_is_not_deblurred() -> None:
 def test_radiance_cache_is_bounded_and_keyed_by_the_batch(monkeypatch: pytest.MonkeyPatch) -> None:
     """The deblurred sharp image is cached per batch (fits render one batch many times) within a byte bound;
     a different batch never gets another's result."""
-    from neural_dp.simulators import base as base_mod
+    from neural_dp.simulators.base import sharp as base_mod
 
     monkeypatch.setattr(base_mod, "_RADIANCE_CACHE", type(base_mod._RADIANCE_CACHE)())
     batches = [make_batch(torch.rand(1, 3, 24, 32, generator=torch.Generator().manual_seed(k)), torch.full((1, 1, 24, 32), 12.0))

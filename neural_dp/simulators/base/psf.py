@@ -1,0 +1,168 @@
+"""Half-disc PSF kernels of the base model and their cache (the maths is in :func:`_half_disc_kernel`)."""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ...metrics import gaussian_window
+
+__all__ = ["PSFShape", "half_disc_kernels", "full_disc_kernels", "stack_centred"]
+
+
+@dataclass
+class PSFShape:
+    """Per-node shape of the LEFT-view PSF (all tensors broadcast to (K,)).
+
+    Attributes:
+        coc_px: (K,) signed CoC diameter of each node, px (sign picks the half: left half for coc > 0).
+        scale: multiplies the disc diameter (1 = thin-lens).
+        softness_px: standard deviation of the Gaussian that softens the disc, px (0 = hard edge).
+        rim2, rim4: radial weight ``1 + rim2 (rho/R)^2 + rim4 (rho/R)^4`` (0 = uniform disc, > 0 brighter
+            rim, < 0 brighter centre), clipped at 0; the PSF is renormalised.
+        split: weight of the half-aperture split: the left PSF is ``disc * ((1 - split)/2 + split * half)``,
+            so the L/R centroid separation is ``split`` times the ideal 4c/(3 pi) (1 = ideal hard split).
+        pixel_box: how the PSF becomes pixel weights, from 0 (a 2-px triangle: the sharp image is linearly
+            interpolated between pixel centres) to 1 (a 1-px box: each sharp pixel is a uniform square of
+            light); see :func:`_half_disc_kernel`.
+    """
+
+    coc_px: Tensor
+    scale: Tensor
+    softness_px: Tensor
+    rim2: Tensor
+    rim4: Tensor
+    split: Tensor
+    pixel_box: Tensor | float = 0.0
+
+
+FINE_SUPERSAMPLE_BY_KERNEL_PX: tuple[tuple[int, int], ...] = ((9, 15), (25, 7), (2**31, 5))
+"""(largest kernel width n in px, fine samples per px): small kernels, where the disc's edge is a large part
+of the PSF, are built on a finer grid; every factor is odd so that a fine sample sits on each pixel centre."""
+
+
+def _fine_supersample(n: int) -> int:
+    """Odd sub-pixel grid factor for an n x n kernel (:data:`FINE_SUPERSAMPLE_BY_KERNEL_PX`)."""
+    return next(ss for n_max, ss in FINE_SUPERSAMPLE_BY_KERNEL_PX if n <= n_max)
+
+
+def _soften(w: Tensor, sigma_fine: float) -> Tensor:
+    """(N, N) fine-grid PSF convolved with a Gaussian of ``sigma_fine`` fine samples (zero outside);
+    unchanged below 0.3 samples."""
+    if sigma_fine <= 0.3:
+        return w
+    r = int(math.ceil(3 * sigma_fine))
+    g = gaussian_window(2 * r + 1, sigma_fine, device=w.device)
+    w = F.conv2d(F.pad(w[None, None], (r, r, 0, 0)), g.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(w, (0, 0, r, r)), g.view(1, 1, -1, 1))[0, 0]
+
+
+_KERNEL_CACHE: "OrderedDict[tuple, Tensor]" = OrderedDict()
+_KERNEL_CACHE_SIZE = 4096
+
+
+def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
+    r"""Left-view PSFs of K nodes, each normalised to sum 1 (see :func:`_half_disc_kernel` for the maths).
+
+    Each node's kernel is built at its own size (so the many small kernels near focus are cheap) and kept
+    in a small LRU cache keyed by its shape parameters: a fit renders the same nodes for every batch.
+
+    Returns:
+        (K, n, n) float tensor, n odd, centred (the largest node's size, others zero-padded); the right
+        PSF is ``flip(-1)`` of it.
+    """
+    coc = shape.coc_px
+    K = coc.shape[0]
+
+    def per_node(t: Tensor | float) -> list[float]:
+        t = torch.as_tensor(t)
+        return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
+
+    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box)]
+    kernels = []
+    for k in range(K):
+        node = tuple(c[k] for c in cols)
+        key = (str(coc.device), supersample) + node
+        ker = _KERNEL_CACHE.get(key)
+        if ker is None:
+            ker = _half_disc_kernel(*node, supersample=supersample, device=coc.device)
+            _KERNEL_CACHE[key] = ker
+            if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
+                _KERNEL_CACHE.popitem(last=False)
+        else:
+            _KERNEL_CACHE.move_to_end(key)
+        kernels.append(ker)
+    return stack_centred(kernels)
+
+
+def stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
+    """Stack centred odd square kernels (..., n_i, n_i) of different sizes, zero-padded to the largest."""
+    n = max(k.shape[-1] for k in kernels)
+    return torch.stack([F.pad(k, ((n - k.shape[-1]) // 2,) * 4) for k in kernels], dim=dim)
+
+
+def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
+                      pixel_box: float = 0.0, supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
+    r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
+
+    With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
+
+    .. math::
+        D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
+        P(\rho) = \max(0, 1 + a_2 q + a_4 q^2), \quad q = \min(\rho / R', 1)^2
+        S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < 0], \quad k' = k R / R'
+        H_l = ((1 - \beta) \mathrm{tent} + \beta\, \mathrm{box})(G_\sigma * (D P S)) / \sum
+
+    ``G_sigma`` is a Gaussian of standard deviation ``softness_px`` (the lens' residual blur, px). ``tent``
+    samples the fine PSF at pixel centres through a 2-px triangle: the sharp image is reconstructed by
+    linear interpolation between pixel centres, so a sub-pixel disc keeps its exact centroid
+    (:math:`-2 c / (3 \pi)` px for the left view), i.e. DP disparity does not vanish below 1 px, and
+    ``c = 0`` is exactly the identity. ``box`` integrates it over each pixel's area instead (each sharp
+    pixel a uniform square of light, as a renderer that draws anti-aliased discs on the pixel grid
+    assumes): a half disc inside the centre pixel then stays there (centroid 0 up to ~0.7 px of CoC,
+    -0.10 px at 1.3 px against -0.28 exact). ``beta = pixel_box``; ``c = 0`` is the identity for every
+    ``beta``. ``supersample`` is a lower bound on ``ss``.
+
+    Returns:
+        (n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
+    """
+    coc, scale_t, soft, a2, a4, split_t = (torch.tensor(v, device=device, dtype=torch.float32)
+                                            for v in (coc_px, scale, softness_px, rim2, rim4, split))
+    beta = min(max(float(pixel_box), 0.0), 1.0)
+    R = coc.abs() * scale_t / 2  # px
+    sigma = soft.clamp(min=0.0)
+    half = int(math.ceil(float(R + 3 * sigma))) + 2
+    n = 2 * half + 1
+    ss = max(_fine_supersample(n), supersample | 1)
+    fine = (torch.arange(n * ss, device=device, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
+    fy, fx = torch.meshgrid(fine, fine, indexing="ij")
+    rho = torch.sqrt(fx**2 + fy**2)  # (N, N)
+    Reff = R.clamp(min=0.5 / ss)
+    disc = ((Reff - rho) * ss + 0.5).clamp(0.0, 1.0)
+    q = (rho / Reff).clamp(max=1.0) ** 2
+    prof_w = (1.0 + a2 * q + a4 * q * q).clamp(min=0.0)
+    sign = 1.0 if coc_px >= 0 else -1.0
+    left_half = (fx * sign < 0).float() + 0.5 * (fx == 0).float()
+    sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
+    w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
+    tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
+    p = (ss - 1) // 2
+    wp = F.pad(w[None, None], (p, p, p, p))
+    out = F.conv2d(F.conv2d(wp, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[0, 0]
+    if beta > 0:  # pixel i holds the fine samples i ss .. i ss + ss - 1, centred on its centre like the tent's
+        box = w.reshape(n, ss, n, ss).sum(dim=(1, 3)) / (ss * ss)
+        out = (1.0 - beta) * out + beta * box
+    return out / out.sum().clamp(min=1e-12)
+
+
+def full_disc_kernels(nodes: Tensor, supersample: int) -> Tensor:
+    """(K, 1, n, n) hard full-disc PSFs of diameter ``|nodes|`` px (a half-disc with ``split = 0``)."""
+    one = torch.ones((), device=nodes.device)
+    zero = one * 0.0
+    return half_disc_kernels(PSFShape(nodes, one, zero, zero, zero, zero), supersample)[:, None]

@@ -1,0 +1,78 @@
+"""Undoing the sharp frame's own blur: the all-in-focus radiance behind an f/22 (or any N_s) capture."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import astuple
+
+import torch
+from torch import Tensor
+
+from dp5k_common.dataset import SHARP_F_NUMBER
+
+from ...batch import DPBatch
+from .psf import full_disc_kernels
+from .render import RenderConfig, render_layers
+
+__all__ = ["sharp_blur_coc_px", "sharp_radiance"]
+
+
+_RADIANCE_CACHE: "OrderedDict[tuple, tuple[Tensor, Tensor, Tensor, Tensor | None]]" = OrderedDict()
+_RADIANCE_CACHE_BYTES = 512 * 2**20
+"""The cache keeps each entry's sharp, CoC and radiance tensors alive; it is bounded by their total size."""
+
+
+def sharp_blur_coc_px(batch: DPBatch) -> Tensor:
+    r"""(B, 1, H, W) signed CoC diameter of the sharp frame's own blur, output px.
+
+    Eq. 6 is proportional to :math:`1/N` at fixed focus, so the sharp frame, taken at :math:`N_s` with the
+    same focus, blurs each point by :math:`C_s = C \, N / N_s` (``C`` = ``batch.coc_px``, the DP capture's
+    CoC). :math:`N_s` is ``batch.sharp_f_number`` (:data:`SHARP_F_NUMBER` when absent); :math:`N_s = 0`
+    marks an all-in-focus sharp image (:math:`C_s = 0`).
+    """
+    B = batch.sharp.shape[0]
+    ns = batch.sharp_f_number if batch.sharp_f_number is not None else torch.full((B,), SHARP_F_NUMBER)
+    ns = ns.to(batch.coc_px.device, torch.float32)
+    ratio = torch.where(ns > 0, batch.f_number.float() / ns.clamp(min=1e-6), torch.zeros_like(ns))
+    return batch.coc_px.float() * ratio.view(B, 1, 1, 1)
+
+
+def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None = None) -> Tensor:
+    r"""(B, 3, H, W) the all-in-focus radiance behind the sharp frame, linear, the sharp frame's scale.
+
+    The sharp frame :math:`s` is a capture at :math:`N_s` (f/22), blurred per pixel by a disc of diameter
+    :math:`|C_s|` (:func:`sharp_blur_coc_px`): :math:`s = B x`, with :math:`B` the same occlusion-aware
+    layered blur the model renders with (full disc). Van Cittert iterations undo it:
+    :math:`x_0 = s,\ x_{k+1} = x_k + (s - B x_k)`. At f/2.8 the sharp frame's disc is 13 % of the DP
+    capture's; treating the frame as a pinhole image leaves a rim-softening error 3-25 x the renderer's own
+    on a slanted plane (docs/diagnose.md, base model); one iteration removes about 90 % of it, two reach the
+    renderer's floor. Discs under 2.4 px keep :math:`|1 - \hat B| < 1` below Nyquist, so the iteration
+    converges where the DP blur lets detail through. ``iters = 0`` returns ``s``. Results are cached per
+    (sharp, coc, sharp f-numbers) tensors, iterations and discretisation: fits render the same batch many
+    times (:data:`_RADIANCE_CACHE_BYTES` bounds the cache).
+    """
+    if iters <= 0 or batch.sharp_f_number is not None and bool((batch.sharp_f_number <= 0).all()):
+        return batch.sharp.float()
+    cfg = config or RenderConfig()
+    key = (id(batch.sharp), id(batch.coc_px), id(batch.sharp_f_number), int(iters), astuple(cfg))
+    hit = _RADIANCE_CACHE.get(key)
+    if hit is not None and hit[0] is batch.sharp and hit[1] is batch.coc_px and hit[3] is batch.sharp_f_number:
+        _RADIANCE_CACHE.move_to_end(key)
+        return hit[2]
+    s = batch.sharp.float()
+    coc_s = sharp_blur_coc_px(batch)
+
+    def blur(x: Tensor) -> Tensor:
+        return render_layers(x, coc_s, batch.valid, lambda nodes: full_disc_kernels(nodes, cfg.supersample), cfg)[0]
+
+    x = s
+    for _ in range(iters):
+        x = x + (s - blur(x))
+    _RADIANCE_CACHE[key] = (batch.sharp, batch.coc_px, x, batch.sharp_f_number)
+    def nbytes(entry: tuple) -> int:
+        return sum(t.numel() * t.element_size() for t in entry if isinstance(t, Tensor))
+
+    total = sum(nbytes(e) for e in _RADIANCE_CACHE.values())
+    while len(_RADIANCE_CACHE) > 1 and total > _RADIANCE_CACHE_BYTES:
+        total -= nbytes(_RADIANCE_CACHE.popitem(last=False)[1])
+    return x
