@@ -16,15 +16,15 @@ import time
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
-import usb.core  # noqa: E402
+import usb.core
 
-from dp5k_capture.canon import CaptureTiming, EosCamera  # noqa: E402
-from dp5k_capture.ptp import eos_events as ev  # noqa: E402
-from dp5k_capture.ptp.session import PTPSession, SessionConfig  # noqa: E402
-from dp5k_capture.ptp.transport import UsbTransport  # noqa: E402
-from dp5k_capture.sim.eos_body import SimulatedEOS  # noqa: E402
-from dp5k_capture.sim.usb_backend import SimUsbBackend  # noqa: E402
-from dp5k_capture.sim.usb_device import SimUsbPtpDevice  # noqa: E402
+from dp5k_capture.canon import CaptureTiming, EosCamera
+from dp5k_capture.ptp import eos_events as ev
+from dp5k_capture.ptp.session import PTPSession, SessionConfig
+from dp5k_capture.ptp.transport import UsbTransport
+from dp5k_capture.sim.eos_body import SimulatedEOS
+from dp5k_capture.sim.usb_backend import SimUsbBackend
+from dp5k_capture.sim.usb_device import SimUsbPtpDevice
 
 
 class _BigFile:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,11 +26,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns  # noqa: E402
-from tests.process.synth import PlaneScene, look_at_rig, render_projection, world_points  # noqa: E402
+from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
+from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection, world_points
 
 
 def _true_proj(scene, proj, cam):
@@ -135,7 +132,7 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None)
 
     from dp5k_process.package import process_sessions
     from dp5k_process.pipeline import ProcessConfig
-    from tests.process.sim_session import write_session
+    from dp5k_testing.sim_session import write_session
 
     raw = (keep or tmp) / "raw"
     t_render = None

@@ -18,20 +18,17 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from dp5k_common.optics import coc_diameter_px  # noqa: E402
-from neural_dp.batch import DPBatch  # noqa: E402
-from neural_dp.losses import dp_loss  # noqa: E402
-from neural_dp.model import ModelConfig  # noqa: E402
-from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs  # noqa: E402
-from neural_dp.simulators.registry import PEERS, get_simulator  # noqa: E402
+from dp5k_common.optics import coc_diameter_px
+from neural_dp.batch import DPBatch
+from neural_dp.losses import dp_loss
+from neural_dp.model import ModelConfig
+from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
+from neural_dp.simulators.registry import PEERS, get_simulator
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:

@@ -1,4 +1,4 @@
-"""Diagnose on data from another renderer: every effect of the vocabulary planted by ``tests/helpers/foreign_dp.py``.
+"""Diagnose on data from another renderer: every effect of the vocabulary planted by ``dp5k_testing/foreign_dp.py``.
 
 The studio and the base model were built side by side; this renderer shares no code with either (a per-pixel
 scatter without occlusion, its own scenes, textures, optics and effect formulas), so this is the check closest
@@ -14,16 +14,14 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dp5k_common.effects import EFFECT_NAMES  # noqa: E402
-from dp5k_diagnose.run import DiagnoseConfig, run_diagnose  # noqa: E402
-from tests.helpers.foreign_dp import write_dataset  # noqa: E402
+from dp5k_common.effects import EFFECT_NAMES
+from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
+from dp5k_testing.foreign_dp import write_dataset
 
 
 def main() -> None:
@@ -36,7 +34,7 @@ def main() -> None:
     ap.add_argument("--f-numbers", default="2,4")
     ap.add_argument("--unstated-sharp", action="store_true", help="params.json does not state sharp_f_number")
     ap.add_argument("--sharp-f-number", type=float, default=0.0, help="the f-number sharp is rendered at (0 = all-in-focus)")
-    ap.add_argument("--sampling", default="box", choices=["box", "tent"], help="how PSFs become pixel weights (tests/helpers/foreign_dp.half_kernel)")
+    ap.add_argument("--sampling", default="box", choices=["box", "tent"], help="how PSFs become pixel weights (dp5k_testing/foreign_dp.half_kernel)")
     ap.add_argument("--out", type=Path, default=None, help="keep the datasets and reports here")
     a = ap.parse_args()
     W, H = (int(v) for v in a.size.split("x"))

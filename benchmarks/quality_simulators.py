@@ -15,18 +15,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from dp5k_studio.dataset import make_dataset  # noqa: E402  (benchmarks may use the world)
-from neural_dp.config import load_config  # noqa: E402
-from neural_dp.evaluate import evaluate  # noqa: E402
-from neural_dp.simulators.registry import available_simulators  # noqa: E402
-from neural_dp.train import train  # noqa: E402
+from neural_dp.config import load_config
+from neural_dp.evaluate import evaluate
+from neural_dp.simulators.registry import available_simulators
+from neural_dp.train import train
 
 EFFECTS = {"lr_gain_imbalance": 1.0, "psf_profile": 1.0, "disparity_scale": 1.0, "field_varying_psf": 1.0,
            "chromatic_defocus": 1.0}

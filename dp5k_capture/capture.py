@@ -80,7 +80,7 @@ def dual_pixel_check(where: str) -> Callable[[Path], None]:
         except BadInputError as exc:
             raise DeviceError(
                 f"the body did not write a Dual Pixel RAW ({exc.message}); enable Shooting menu > Dual Pixel RAW "
-                "with quality RAW on this body; the scene stops here", where=where) from None
+                "with quality RAW on this body; the scene stops here", where=where) from exc
 
     return check
 

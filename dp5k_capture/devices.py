@@ -53,7 +53,7 @@ def find_bodies(backend: Any = None) -> list[FoundBody]:
     try:
         devs = list(usb.core.find(find_all=True, idVendor=CANON_VID, backend=backend) or [])
     except usb.core.NoBackendError as exc:
-        raise DeviceError(f"no libusb backend ({exc}); install libusb-1.0", where="usb") from None
+        raise DeviceError(f"no libusb backend ({exc}); install libusb-1.0", where="usb") from exc
     out = []
     for dev in devs:
         if not _is_ptp(dev):
@@ -106,7 +106,7 @@ def open_bodies(rig: RigConfig, backend: Any = None, config: SessionConfig | Non
             try:
                 cams[cam_id] = open_body(f, cam_id, config, timing)
             except usb.core.USBError as exc:
-                raise map_usb_error(exc, cam_id, "open") from None
+                raise map_usb_error(exc, cam_id, "open") from exc
     except BaseException:
         for cam in cams.values():
             cam.close()

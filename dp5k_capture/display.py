@@ -43,7 +43,7 @@ class PatternWindow:
             self.surface = pygame.display.set_mode((self.width, self.height), flags, display=index)
             pygame.mouse.set_visible(False)
         except pygame.error as exc:
-            raise DeviceError(f"cannot open the pattern window ({exc})", where=f"display {display_index}") from None
+            raise DeviceError(f"cannot open the pattern window ({exc})", where=f"display {display_index}") from exc
         self.shown: int | None = None
         self._frame: NDArray[np.uint8] | None = None
 

@@ -59,7 +59,7 @@ class EpsonProjector:
             self.port = serial.serial_for_url(url, baudrate=9600, bytesize=8, parity="N", stopbits=1,
                                               xonxoff=False, rtscts=False, timeout=0.1)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open serial port ({exc})", where=self.name) from None
+            raise DeviceError(f"cannot open serial port ({exc})", where=self.name) from exc
 
     def close(self) -> None:
         self.port.close()
@@ -102,7 +102,7 @@ class EpsonProjector:
                 if len(reply) > 4096:
                     raise DeviceError(f"{cmd!r}: reply longer than 4096 bytes without a prompt", where=self.name)
         except serial.SerialException as exc:
-            raise DeviceError(f"{cmd!r}: serial error ({exc})", where=self.name) from None
+            raise DeviceError(f"{cmd!r}: serial error ({exc})", where=self.name) from exc
         text = reply[:-1].decode("ascii", errors="replace").strip("\r\n ")
         if text == "ERR":
             raise ProjectorError(f"{cmd!r} refused (ERR)", where=self.name)

@@ -132,7 +132,7 @@ class RawSessionWriter:
         try:
             write_json_atomic(self.manifest_path, self.manifest)
         except OSError as exc:
-            raise _storage_error(exc, self.manifest_path) from None
+            raise _storage_error(exc, self.manifest_path) from exc
 
     # ------------------------------------------------------------------ files
     def add(self, camera: str, shot: Shot, data: bytes, meta: dict[str, Any],
@@ -165,7 +165,7 @@ class RawSessionWriter:
                     raise BadInputError("appeared while writing; never overwritten", where=final)
                 os.replace(tmp, final)
             except OSError as exc:
-                raise _storage_error(exc, final) from None
+                raise _storage_error(exc, final) from exc
             finally:
                 with contextlib.suppress(FileNotFoundError):
                     tmp.unlink()

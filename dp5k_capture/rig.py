@@ -121,7 +121,7 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     try:
         return cls(**kwargs)
     except TypeError as exc:
-        raise BadInputError(str(exc), where=where) from None
+        raise BadInputError(str(exc), where=where) from exc
 
 
 def load_rig(path: str | Path) -> RigConfig:
@@ -133,10 +133,10 @@ def load_rig(path: str | Path) -> RigConfig:
     path = Path(path)
     try:
         raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise BadInputError("rig file not found", where=path) from None
+    except FileNotFoundError as exc:
+        raise BadInputError("rig file not found", where=path) from exc
     except tomllib.TOMLDecodeError as exc:
-        raise BadInputError(f"not valid TOML ({exc})", where=path) from None
+        raise BadInputError(f"not valid TOML ({exc})", where=path) from exc
     bodies = tuple(_build(BodyConfig, b, f"{path} [[body]]") for b in raw.pop("body", [])) or RigConfig().bodies
     projector = _build(ProjectorConfig, raw.pop("projector", {}), f"{path} [projector]")
     exposure = _build(ExposureConfig, raw.pop("exposure", {}), f"{path} [exposure]")
@@ -162,7 +162,7 @@ def validate_rig(rig: RigConfig, where: str = "rig") -> None:
         for f in e.dp_f_numbers:
             tv_code(e.dp_shutter_s(f))
     except ValueError as exc:
-        raise BadInputError(str(exc), where=where) from None
+        raise BadInputError(str(exc), where=where) from exc
     for b in rig.bodies:
         if b.K and (np.shape(b.K) != (3, 3) or not np.isfinite(np.asarray(b.K, float)).all()):
             raise BadInputError(f"body {b.id}: K must be a finite 3x3 matrix in raw px", where=where)

@@ -54,6 +54,27 @@ SHARP_F_NUMBER = 22.0
 """The f-number of a pair's ``sharp`` image when params.json does not say (``sharp_f_number``)."""
 
 
+def _check_frame_geometry(obj: Mapping[str, Any], size: tuple[int, int], where: str) -> None:
+    """The optional tile keys: both or neither, integers, and the (W, H) = ``size`` crop inside the frame."""
+    keys = ("crop_origin_px", "full_image_size")
+    present = [k for k in keys if k in obj]
+    if not present:
+        return
+    if len(present) == 1:
+        raise DatasetFormatError(f"'{present[0]}' needs '{(set(keys) - set(present)).pop()}' too (a tile states both)", where=where)
+    vals = []
+    for key in keys:
+        v = obj[key]
+        if (not isinstance(v, (list, tuple)) or len(v) != 2
+                or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x != int(x) for x in v)):
+            raise DatasetFormatError(f"'{key}' must be a list of 2 integers, got {v!r}", where=where)
+        vals.append((int(v[0]), int(v[1])))
+    (x0, y0), (Wf, Hf) = vals
+    W, H = size
+    if x0 < 0 or y0 < 0 or x0 + W > Wf or y0 + H > Hf:
+        raise DatasetFormatError(f"the {W}x{H} tile at crop_origin_px {[x0, y0]} does not fit full_image_size {[Wf, Hf]}", where=where)
+
+
 @dataclass(frozen=True)
 class PairParams:
     """Imaging parameters of one pair (``params.json``).
@@ -99,6 +120,16 @@ class PairParams:
         """The f-number of ``sharp`` (optional key ``sharp_f_number``; format v1 default 22; 0 = an
         all-in-focus image, e.g. the radiance a synthetic pair was rendered from)."""
         return float(self.extra.get("sharp_f_number", SHARP_F_NUMBER))
+
+    @property
+    def frame_geometry(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """(origin (x0, y0) px, full frame size (W, H) px) of this pair inside its camera frame: the optional
+        keys ``crop_origin_px`` and ``full_image_size`` of a tile (validated by :meth:`from_json`), else the
+        pair is the whole frame."""
+        if "crop_origin_px" in self.extra:
+            o, fs = self.extra["crop_origin_px"], self.extra["full_image_size"]
+            return (int(o[0]), int(o[1])), (int(fs[0]), int(fs[1]))
+        return (0, 0), (int(self.image_size[0]), int(self.image_size[1]))
 
     def to_json(self) -> dict[str, Any]:
         """The params.json object (required keys first, then extras)."""
@@ -168,6 +199,7 @@ class PairParams:
         size = pair_of("image_size", int)
         if "sharp_f_number" in obj and number("sharp_f_number", positive=False) < 0:
             raise DatasetFormatError(f"'sharp_f_number' must be >= 0 (0 = all-in-focus), got {obj['sharp_f_number']}", where=where)
+        _check_frame_geometry(obj, size, where)
         extra = {k: v for k, v in obj.items() if k not in cls.REQUIRED}
         return cls(
             pair_id=obj["pair_id"],
@@ -233,7 +265,7 @@ class DatasetReader:
         try:
             index = read_json(index_path)
         except Exception as exc:
-            raise DatasetFormatError(getattr(exc, "message", str(exc)), where=index_path) from None
+            raise DatasetFormatError(getattr(exc, "message", str(exc)), where=index_path) from exc
         if not isinstance(index, dict):
             raise DatasetFormatError("must be a JSON object", where=index_path)
         if index.get("format") != FORMAT_NAME:
@@ -295,7 +327,7 @@ class DatasetReader:
         try:
             obj = read_json(path)
         except Exception as exc:
-            raise DatasetFormatError(getattr(exc, "message", str(exc)), where=where) from None
+            raise DatasetFormatError(getattr(exc, "message", str(exc)), where=where) from exc
         params = PairParams.from_json(obj, where)
         if params.pair_id != pair_id:
             raise DatasetFormatError(
@@ -327,7 +359,7 @@ class DatasetReader:
             try:
                 return read_image_raw(path)
             except Exception as exc:
-                raise DatasetFormatError(getattr(exc, "message", str(exc)), where=where(name)) from None
+                raise DatasetFormatError(getattr(exc, "message", str(exc)), where=where(name)) from exc
 
         def check_shape(name: str, img: NDArray[Any], channels: int) -> None:
             if channels == 1:

@@ -62,6 +62,10 @@ class DatasetFormatError(BadInputError):
     exit_code = 4
 
 
+class EmptySplitError(DatasetFormatError):
+    """A dataset split (train, val or test) holds no pair; callers that can do without it catch this one."""
+
+
 class DeviceError(DP5KError):
     """A camera or projector failed: protocol error, fault reply, disconnect."""
 

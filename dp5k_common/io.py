@@ -66,10 +66,10 @@ def read_json(path: str | os.PathLike[str]) -> Any:
     path = Path(path)
     try:
         return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise BadInputError("file not found", where=path) from None
+    except FileNotFoundError as exc:
+        raise BadInputError("file not found", where=path) from exc
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise BadInputError(f"not valid JSON ({exc})", where=path) from None
+        raise BadInputError(f"not valid JSON ({exc})", where=path) from exc
 
 
 def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
@@ -111,7 +111,7 @@ def read_image_raw(path: str | os.PathLike[str]) -> NDArray[Any]:
         try:
             return np.asarray(tifffile.imread(path))
         except Exception as exc:  # tifffile raises many types for corrupt files
-            raise BadInputError(f"cannot read TIFF ({exc})", where=path) from None
+            raise BadInputError(f"cannot read TIFF ({exc})", where=path) from exc
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise BadInputError("cannot decode image (corrupt or unsupported)", where=path)

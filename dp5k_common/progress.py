@@ -21,10 +21,6 @@ def set_progress_enabled(enabled: bool) -> None:
     _enabled = enabled
 
 
-def progress_enabled() -> bool:
-    return _enabled
-
-
 def progress(iterable: Iterable[T] | None = None, *, desc: str = "", total: int | None = None, unit: str = "it", **kw: Any) -> Any:
     """A tqdm bar over ``iterable`` (or a manual bar when ``iterable`` is None), on stderr.
 

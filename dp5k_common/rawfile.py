@@ -16,6 +16,7 @@ files, which :func:`read_dual_pixel` opens the same way (same LibRaw frame-selec
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -29,6 +30,8 @@ from numpy.typing import NDArray
 
 from .errors import BadInputError
 from .io import atomic_path
+
+log = logging.getLogger(__name__)
 
 CANON_MAKE = "Canon"
 CANON_MODEL = "Canon EOS 5D Mark IV"
@@ -211,9 +214,11 @@ def read_dual_pixel(path: str | os.PathLike[str]) -> DualPixelFrames:
         with _open_frame(path, 2):
             raise BadInputError("not a Dual Pixel RAW: more than two raw frames", where=path)
     except rawpy.LibRawRequestForNonexistentImageError:
-        pass
-    except rawpy.LibRawError:
-        pass
+        pass  # exactly two raw frames: the expected case
+    except rawpy.LibRawError as exc:
+        # LibRaw lists a third image but cannot decode it as a raw frame, so it is not a third DP frame: the
+        # file is still read as two frames, and the oddity is reported rather than hidden.
+        log.warning("%s: a third raw image is present but unreadable (%s: %s); using frames 0 and 1", path, type(exc).__name__, exc)
     main, aux = frames
     if main.shape != aux.shape:
         raise BadInputError(f"Dual Pixel frames differ in size {main.shape} vs {aux.shape}", where=path)

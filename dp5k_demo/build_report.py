@@ -7,7 +7,6 @@ focus distance of the processed dataset); ``report.json`` keeps every number sho
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -198,8 +197,3 @@ def build_report(out: Path, scale: DemoScale, records: dict[str, dict[str, Any]]
     figures.timings_figure(stage_times, figs / "timings.png")
     s.figure("report-figures/timings.png", "Seconds per stage (this run; reused stages show their first run's time).")
     return rep.write(out)
-
-
-def report_numbers(out: Path) -> dict[str, Any]:
-    """The numbers of a written report (``report.json``)."""
-    return json.loads((out / "report.json").read_text())

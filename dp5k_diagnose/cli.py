@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -39,8 +38,8 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         raise BadInputError(f"unknown model {model!r} (base, disk, butterworth, raytrace or neural:CKPT)", where="--model")
     try:
         shot_var, read_sigma = (float(v) for v in nominal_noise.split(","))
-    except ValueError:
-        raise BadInputError(f"--nominal-noise must be SHOT_VAR,READ_SIGMA, got {nominal_noise!r}", where="--nominal-noise") from None
+    except ValueError as exc:
+        raise BadInputError(f"--nominal-noise must be SHOT_VAR,READ_SIGMA, got {nominal_noise!r}", where="--nominal-noise") from exc
     if not (shot_var >= 0 and read_sigma >= 0):
         raise BadInputError(f"--nominal-noise values must be >= 0, got {nominal_noise!r}", where="--nominal-noise")
     sharp_n: float | None = None

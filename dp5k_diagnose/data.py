@@ -97,24 +97,6 @@ def occlusion_free_mask(batch: DPBatch, min_jump_px: float = 0.5, rel_jump: floa
     return ~near
 
 
-def frame_geometry(p: Pair) -> tuple[tuple[int, int], tuple[int, int]]:
-    """(origin (x0, y0), full frame size (W, H)) of a pair inside its camera frame.
-
-    Imported tiles record ``crop_origin_px`` and ``full_image_size`` in params.json (geometry, not effect
-    metadata); otherwise the pair is the whole frame.
-    """
-    W, H = p.params.image_size
-    ex = p.params.extra
-    try:
-        o = ex.get("crop_origin_px")
-        fs = ex.get("full_image_size")
-        if o is not None and fs is not None:
-            return (int(o[0]), int(o[1])), (int(fs[0]), int(fs[1]))
-    except (TypeError, ValueError, IndexError):
-        pass
-    return (0, 0), (W, H)
-
-
 def load_pairs(reader: DatasetReader, ids: Sequence[str]) -> list[Pair]:
     return [reader.load(pid) for pid in ids]
 
@@ -150,7 +132,7 @@ def full_samples(pairs: Sequence[Pair], device: str = "cpu", per_batch: int = 4)
         for i in range(0, len(ps), per_batch):
             chunk = ps[i : i + per_batch]
             b = DPBatch.from_pairs(chunk, device)
-            fields = [field_coords(1, H, W, device, *frame_geometry(p)) for p in chunk]
+            fields = [field_coords(1, H, W, device, *p.params.frame_geometry) for p in chunk]
             out.append(Sample(b, torch.cat(fields)))
     return out
 
@@ -185,7 +167,7 @@ def crop_samples(
         W, H = p.params.image_size
         ch, cw = min(crop, H), min(crop, W)
         b = DPBatch.from_pairs([p], device)
-        (ox, oy), full = frame_geometry(p)
+        (ox, oy), full = p.params.frame_geometry
         n = 1 if (ch == H and cw == W) else crops_per_pair
         m = context_margin_px(p, crop) if (ch, cw) != (H, W) else 0
         eh, ew = min(ch + 2 * m, H), min(cw + 2 * m, W)  # the cut, core plus context

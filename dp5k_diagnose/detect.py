@@ -300,7 +300,7 @@ def fit_base(fit: list[Sample], iters: int = 4) -> BaseModel:
     ``pixel_box`` is the renderer's discretisation, not a lens effect: whether the data's PSFs reach pixels
     as if each sharp pixel were a linearly interpolated sample (0, dp5k's studio) or a uniform square of
     light (1, a renderer that draws anti-aliased discs on the pixel grid). Below ~2 px of CoC the two
-    differ by more than most effects: on such data (``tests/helpers/foreign_dp.py``, ``sampling="box"``)
+    differ by more than most effects: on such data (``dp5k_testing/foreign_dp.py``, ``sampling="box"``)
     the base model with the triangle alone erred 10 x the noise at 0.5-2 px of CoC on fine texture, and
     five of the nine effects were not found (``benchmarks/foreign_sweep.py``).
     """
@@ -354,7 +354,7 @@ def flat_lr_noise(samples: list[Sample], cfg: DetectConfig, base: BaseModel | No
     :math:`\hat R`, and the predicted difference is taken out, :math:`d = (L - R) - (\hat L - \hat R)`. So
     strongly blurred texture counts as flat (it is, in the views) and the DP disparity of what texture is
     left does not count as noise. On data textured everywhere (no flat patch in ``sharp``,
-    ``tests/helpers/foreign_dp.py``) the sharp image's own flatness picked textured defocused pixels, whose
+    ``dp5k_testing/foreign_dp.py``) the sharp image's own flatness picked textured defocused pixels, whose
     DP disparity read as 1.7-1.9 x the nominal variance on clean sets with nominal noise (1.01 this way)
     and a planted 4 x as 5.3 x (4.03); on studio sets 1.09 (1.00) and 4.09 (4.01). Without ``base`` the
     flattest pixels of ``sharp`` are used and ``d = L - R`` (model-free).

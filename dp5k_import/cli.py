@@ -26,8 +26,8 @@ def import_command(kind: str, src: Path, out: Path, tile: str, seed: int) -> Non
     if tile.lower() != "none":
         try:
             w, h = (int(v) for v in tile.lower().split("x"))
-        except ValueError:
-            raise BadInputError(f"--tile must be WxH or none, got {tile!r}", where="--tile") from None
+        except ValueError as exc:
+            raise BadInputError(f"--tile must be WxH or none, got {tile!r}", where="--tile") from exc
         size = (w, h)
     splits = import_dataset(kind, src, out, tile=size, seed=seed)
     click.echo(json.dumps({k: len(v) for k, v in splits.items()}))

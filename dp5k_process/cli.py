@@ -18,8 +18,8 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
         return None
     try:
         w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise BadInputError(f"{what} must look like WxH (e.g. 1680x1120), got {text!r}") from None
+    except ValueError as exc:
+        raise BadInputError(f"{what} must look like WxH (e.g. 1680x1120), got {text!r}") from exc
     if w <= 0 or h <= 0:
         raise BadInputError(f"{what} must be positive, got {text!r}")
     return w, h

@@ -39,14 +39,6 @@ def half_size_rgb(mosaic: NDArray, black: float, cfa: str = "RGGB") -> NDArray[n
     return np.stack(ch, -1)
 
 
-def half_size_gray(mosaic: NDArray, black: float) -> NDArray[np.float32]:
-    """(H/2, W/2) float32 mean of each 2x2 quad minus black, in raw counts (for structured light and ChArUco)."""
-    m = np.asarray(mosaic, dtype=np.float32)
-    H, W = m.shape
-    m = m[: H - H % 2, : W - W % 2]
-    return 0.25 * (m[0::2, 0::2] + m[0::2, 1::2] + m[1::2, 0::2] + m[1::2, 1::2]) - np.float32(black)
-
-
 def dp_views(frames: DualPixelFrames, aux_view: str = "left") -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """(main, left, right) white-balanced linear RGB (H/2, W/2, 3), 1.0 = white - black of the main frame."""
     scale = np.float32(1.0 / (frames.white_level - frames.black_level))

@@ -91,8 +91,8 @@ def _focal_from_lens(lens: str | None) -> float | None:
 def _pair(v: Any, where: Path, what: str) -> tuple[float, float]:
     try:
         a, b = (float(x) for x in v)
-    except (TypeError, ValueError):
-        raise BadInputError(f"{what} must be two numbers, got {v!r}", where=where) from None
+    except (TypeError, ValueError) as exc:
+        raise BadInputError(f"{what} must be two numbers, got {v!r}", where=where) from exc
     return a, b
 
 

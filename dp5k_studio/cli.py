@@ -12,8 +12,8 @@ from dp5k_common.errors import BadInputError
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise BadInputError(f"--size must look like 288x192, got {text!r}") from None
+    except ValueError as exc:
+        raise BadInputError(f"--size must look like 288x192, got {text!r}") from exc
     return w, h
 
 
@@ -47,8 +47,8 @@ def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...],
         return
     try:
         fns = [float(v) for v in f_numbers.split(",") if v.strip()]
-    except ValueError:
-        raise BadInputError(f"--f-numbers must be comma-separated numbers, got {f_numbers!r}") from None
+    except ValueError as exc:
+        raise BadInputError(f"--f-numbers must be comma-separated numbers, got {f_numbers!r}") from exc
     scenes = list(scene_names) if scene_names else n_scenes
     path = make_dataset(out, scenes=scenes, effects=eff, size=_size(size), f_numbers=fns, seed=seed,
                         overwrite=overwrite, noise=not no_noise)

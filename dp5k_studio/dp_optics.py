@@ -64,9 +64,13 @@ _DISC_XY = np.stack([_DISC_R * np.cos(_i * _GOLDEN), _DISC_R * np.sin(_i * _GOLD
 """(N, 2) unit-disc sample points (x right, y down), uniform in area."""
 
 SMALL_STEP_PX = 0.5
+"""Depth layers are 0.5 px of signed CoC apart up to :data:`SMALL_LIMIT_PX` ..."""
 SMALL_LIMIT_PX = 4.0
 GEOM_STEP = 0.08
+"""... and 8 % of |CoC| apart beyond it (:func:`_layer_coord`)."""
 LOWRES_RADIUS_PX = 8.0
+"""Layers whose blur radius reaches twice this (px) are blurred on a Gaussian pyramid level where it is
+8..16 px (:func:`_pyramid_factor`)."""
 
 
 @dataclass(frozen=True)
@@ -126,12 +130,14 @@ def coc_channels_px(depth_mm: NDArray[np.floating], lens: LensSetting, effects: 
         vz = 1.0 / (1.0 / fc - 1.0 / z)
         out[:, :, ch] = np.where(ok, A * (v - vz) / vz / lens.pixel_pitch_mm, 0.0)
     s_field = eff.s("field_varying_psf")
-    if s_field > 0:
+    if s_field > 0:  # the disc grows with the squared field radius (corner = 1)
+        growth = effect_parameters("field_varying_psf", s_field)["coc_growth_at_corner"]
         xn, yn = field_coords(H, W)
-        out *= (1.0 + 0.30 * s_field * (xn**2 + yn**2) / 2.0)[:, :, None]
+        out *= (1.0 + growth * (xn**2 + yn**2) / 2.0)[:, :, None]
     s_fb = eff.s("front_back_asymmetry")
-    if s_fb > 0:
-        out = np.where(out < 0, out * (1.0 + 0.10 * s_fb), out).astype(np.float32)
+    if s_fb > 0:  # discs in front of focus are larger
+        front = effect_parameters("front_back_asymmetry", s_fb)["front_size_factor"]
+        out = np.where(out < 0, out * front, out).astype(np.float32)
     return out
 
 
@@ -151,11 +157,13 @@ def left_kernel(coc_px: float, effects: EffectSet | None = None) -> F32:
     rho = _DISC_R
     w = np.ones(_N_DISC)
     s_prof = eff.s("psf_profile")
-    if s_prof > 0:
-        w = w * (1.0 + 1.5 * s_prof * rho**4)
+    if s_prof > 0:  # brighter rim: weight 1 + g rho^p
+        prof = effect_parameters("psf_profile", s_prof)
+        w = w * (1.0 + prof["rim_gain"] * rho ** prof["rim_power"])
     s_fb = eff.s("front_back_asymmetry")
-    if s_fb > 0:
-        w = w * ((1.0 + s_fb * rho**2) if c > 0 else (1.0 + s_fb * (1.0 - rho**2)))
+    if s_fb > 0:  # behind focus a brighter rim, in front a brighter centre
+        fb = effect_parameters("front_back_asymmetry", s_fb)
+        w = w * ((1.0 + fb["back_rim_gain"] * rho**2) if c > 0 else (1.0 + fb["front_center_gain"] * (1.0 - rho**2)))
     if c > 0:
         sel = pts[:, 0] < 0
     elif c < 0:
@@ -202,7 +210,11 @@ def _pyr_up(a: F32, s: int) -> F32:
 
 
 OCCLUDE_MIN_PX = 2.0
+"""A layer occludes a farther one only when their signed CoCs differ by more than this (px) ..."""
 OCCLUDE_REL = 0.25
+"""... and by more than this fraction of the larger |CoC| (:func:`_occludes`)."""
+MAX_CROSSTALK = 0.5
+"""At most half of a photodiode's light can cross to the other: at 0.5 both views are the same image."""
 
 
 def _occludes(c_near_px: float, c_far_px: float) -> bool:
@@ -276,6 +288,11 @@ def render_dp(
 ) -> DPRender:
     """Render the two DP views of a sharp radiance image with depth.
 
+    Steps: the effective CoC per colour (:func:`coc_channels_px`); the light sources on a grid padded by the
+    largest blur radius (:func:`_sources`); their split into CoC layers (:func:`_layers`); each layer
+    splatted, blurred per aperture half and composited front to back (:func:`_composite`); the per-view
+    effects (:func:`apply_view_effects`).
+
     Args:
         radiance: (H, W, 3) linear sharp (pinhole) image.
         depth_mm: (H, W) z-depth in mm (<= 0 / non-finite = unknown: kept in focus).
@@ -296,51 +313,102 @@ def render_dp(
     img = np.ascontiguousarray(radiance, dtype=np.float32)
     if img.ndim != 3 or img.shape[2] != 3:
         raise BadInputError(f"radiance must be (H, W, 3), got {img.shape}")
-    H, W = img.shape[:2]
-    if np.shape(depth_mm) != (H, W):
-        raise BadInputError(f"depth shape {np.shape(depth_mm)} differs from image {(H, W)}")
+    if np.shape(depth_mm) != img.shape[:2]:
+        raise BadInputError(f"depth shape {np.shape(depth_mm)} differs from image {img.shape[:2]}")
     z = np.asarray(depth_mm, dtype=np.float64)
     coc_out = coc_channels_px(z, lens, eff)
-    # the camera sees beyond the frame: extend the scene by mirroring (so the border is not dark and
-    # every view is normalized alike), render, crop back
-    P = min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H - 1, W - 1)
-    pad2 = lambda a: np.pad(a, ((P, P), (P, P)) + ((0, 0),) * (a.ndim - 2), mode="symmetric")  # noqa: E731
-    img = pad2(img)
-    z = pad2(z)
-    coc = pad2(coc_out)
+    sources = _sources(img, z, coc_out, lens, eff, hidden)
+    halves = ("L", "R", "F") if full else ("L", "R")
+    chroma = effects is not None and eff.s("chromatic_defocus") > 0
+    out = _composite(sources, _layers(sources), halves, eff, chroma)
+    left, right = 0.5 * out["L"], 0.5 * out["R"]
+    if view_effects:
+        left, right = apply_view_effects(left, right, eff)
+    return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), coc_out)
+
+
+@dataclass
+class _Sources:
+    """The light sources of one render on the padded grid (``shape`` = (H, W) after padding by ``pad`` px):
+    every visible pixel (source ``i < n_front`` is padded flat index ``i``), then the hidden surface's pixels
+    (source ``n_front + j`` is padded flat index ``hidden_flat[j]``, radiance ``hidden_img``)."""
+
+    img: F32
+    hidden_img: F32 | None
+    hidden_flat: NDArray[np.int64] | None
+    z_mm: NDArray[np.float64]
+    """(n,) depth used to order layers front to back (unknown depth sorts at the focus distance)."""
+    coc_px: NDArray[np.float32]
+    """(n, 3) signed CoC per colour, px."""
+    n_front: int
+    pad: int
+    shape: tuple[int, int]
+
+
+def _sources(img: F32, z: NDArray[np.float64], coc_out: F32, lens: LensSetting, eff: EffectSet,
+             hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None) -> _Sources:
+    """Pad the scene by the largest blur radius + 2 px and list its light sources.
+
+    The camera sees beyond the frame: the scene is extended by mirroring (so the border is not dark and
+    every view is normalized alike); :func:`_composite` crops back. A hidden surface contributes only where
+    it lies clearly behind the visible one (:func:`_occludes`' margins) and within the visible surface's blur
+    radius (+ 2 px) of a depth edge, the only place a partly open aperture can see it.
+    """
+    H0, W0 = img.shape[:2]
+    P = min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H0 - 1, W0 - 1)
+
+    def pad2(a: NDArray) -> NDArray:
+        return np.pad(a, ((P, P), (P, P)) + ((0, 0),) * (a.ndim - 2), mode="symmetric")
+
+    img, z, coc = pad2(img), pad2(z), pad2(coc_out)
     H, W = img.shape[:2]
     zsort = np.where(np.isfinite(z) & (z > 0), z, lens.focus_distance_mm)
-    # hidden surfaces (second hits behind the visible one), when the caller knows them
-    h_img = h_flat = None
-    n_front = H * W
     src_z, src_c = zsort.ravel(), coc.reshape(-1, 3)
-    if hidden is not None:
-        h_rad, h_depth = hidden
-        if np.shape(h_rad) != (H - 2 * P, W - 2 * P, 3) or np.shape(h_depth) != (H - 2 * P, W - 2 * P):
-            raise BadInputError("hidden radiance/depth must match the image's shape")
-        hz = pad2(np.asarray(h_depth, dtype=np.float64))
-        ok = np.isfinite(hz) & (hz > 0)
-        h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
-        cf, chd = coc[:, :, 1], h_coc[:, :, 1]
-        ok &= (hz > zsort) & ((chd - cf) > np.maximum(OCCLUDE_MIN_PX, OCCLUDE_REL * np.maximum(np.abs(cf), np.abs(chd))))
-        # a hidden surface can only show within the front surface's blur radius of its silhouette
-        jump = np.zeros(cf.shape, bool)
-        dx = np.abs(np.diff(cf, axis=1)) > OCCLUDE_MIN_PX
-        dy = np.abs(np.diff(cf, axis=0)) > OCCLUDE_MIN_PX
-        jump[:, 1:] |= dx
-        jump[:, :-1] |= dx
-        jump[1:, :] |= dy
-        jump[:-1, :] |= dy
-        dist = cv2.distanceTransform((~jump).astype(np.uint8), cv2.DIST_L2, 3)
-        ok &= dist <= np.abs(cf) / 2.0 + 2.0
-        h_flat = np.nonzero(ok.ravel())[0]
-        h_img = pad2(np.asarray(h_rad, dtype=np.float32))
-        # sources: front pixels 0 .. n_front - 1, then hidden ones (n_front + i is hidden pixel h_flat[i])
-        src_z = np.concatenate([src_z, hz.ravel()[h_flat]])
-        src_c = np.concatenate([src_c, h_coc.reshape(-1, 3)[h_flat]])
-    # each source's light is split between the two CoC bins that bracket it, so blur varies continuously
-    # along a slanted surface (one bin per pixel made its blur a staircase: 2-4e-3 rms error against an exact
-    # per-pixel superposition on slanted planes, as large as the planted effects; split, 1e-4)
+    if hidden is None:
+        return _Sources(img, None, None, src_z, src_c, H * W, P, (H, W))
+    h_rad, h_depth = hidden
+    if np.shape(h_rad) != (H0, W0, 3) or np.shape(h_depth) != (H0, W0):
+        raise BadInputError("hidden radiance/depth must match the image's shape")
+    hz = pad2(np.asarray(h_depth, dtype=np.float64))
+    ok = np.isfinite(hz) & (hz > 0)
+    h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
+    cf, chd = coc[:, :, 1], h_coc[:, :, 1]
+    ok &= (hz > zsort) & ((chd - cf) > np.maximum(OCCLUDE_MIN_PX, OCCLUDE_REL * np.maximum(np.abs(cf), np.abs(chd))))
+    jump = np.zeros(cf.shape, bool)
+    dx = np.abs(np.diff(cf, axis=1)) > OCCLUDE_MIN_PX
+    dy = np.abs(np.diff(cf, axis=0)) > OCCLUDE_MIN_PX
+    jump[:, 1:] |= dx
+    jump[:, :-1] |= dx
+    jump[1:, :] |= dy
+    jump[:-1, :] |= dy
+    dist = cv2.distanceTransform((~jump).astype(np.uint8), cv2.DIST_L2, 3)
+    ok &= dist <= np.abs(cf) / 2.0 + 2.0
+    h_flat = np.nonzero(ok.ravel())[0]
+    return _Sources(img, pad2(np.asarray(h_rad, dtype=np.float32)), h_flat,
+                    np.concatenate([src_z, hz.ravel()[h_flat]]), np.concatenate([src_c, h_coc.reshape(-1, 3)[h_flat]]),
+                    H * W, P, (H, W))
+
+
+@dataclass
+class _Layers:
+    """Sources grouped into CoC layers: layer ``li`` holds the entries ``order[starts[li]:starts[li + 1]]`` of
+    ``src`` (source index) and ``weight`` (its share of the source's light); ``z_mm`` (L,) is its weighted
+    depth, ``coc_px`` (L, 3) its CoC per colour."""
+
+    src: NDArray[np.int64]
+    weight: NDArray[np.float64]
+    order: NDArray[np.int64]
+    starts: NDArray[np.int64]
+    z_mm: NDArray[np.float64]
+    coc_px: NDArray[np.float64]
+
+
+def _layers(sources: _Sources) -> _Layers:
+    """Split each source's light between the two CoC bins that bracket it (:func:`_bin_split`), so blur varies
+    continuously along a slanted surface (one bin per pixel made its blur a staircase: 2-4e-3 rms error
+    against an exact per-pixel superposition on slanted planes, as large as the planted effects; split,
+    1e-4), and group the entries by bin."""
+    src_z, src_c = sources.z_mm, sources.coc_px
     k_lo, t_hi = _bin_split(src_c[:, 1])
     all_lid = np.concatenate([k_lo, k_lo + 1])
     all_w = np.concatenate([1.0 - t_hi, t_hi])
@@ -359,73 +427,102 @@ def render_dp(
     zmean = np.bincount(inv_all, weights=all_w * all_z) / wsum
     node = _layer_coc(ids)
     cmean = np.stack([node + np.bincount(inv_all, weights=all_w * dc[:, ch]) / wsum for ch in range(3)], 1)
-    # source entries of every layer, grouped once by sorting
-    order = np.argsort(inv_all, kind="stable")
+    order = np.argsort(inv_all, kind="stable")  # source entries of every layer, grouped once by sorting
     starts = np.concatenate([[0], np.cumsum(counts)])
-    halves = ["L", "R"] + (["F"] if full else [])
+    return _Layers(all_src, all_w, order, starts, zmean, cmean)
+
+
+def _pyramid_factor(radius_px: float) -> int:
+    """The power of 2 that brings a blur radius under 2 x :data:`LOWRES_RADIUS_PX` (1 for small blurs)."""
+    s = 1
+    while radius_px / (2 * s) >= LOWRES_RADIUS_PX:
+        s *= 2
+    return s
+
+
+def _splat_layer(sources: _Sources, layers: _Layers, li: int, margin_px: int) -> tuple[tuple[int, int, int, int], F32, F32]:
+    """Layer ``li``'s premultiplied light on its bounding box grown by ``margin_px``:
+    ``((y0, y1, x0, x1), alpha (h, w), colour (h, w, 3))``."""
+    H, W = sources.shape
+    members = layers.order[layers.starts[li] : layers.starts[li + 1]]
+    src = layers.src[members]
+    wt = layers.weight[members].astype(np.float32)
+    is_front = src < sources.n_front
+    front_flat, w_front = src[is_front], wt[is_front]
+    hidden_flat = sources.hidden_flat[src[~is_front] - sources.n_front] if sources.hidden_flat is not None else src[:0]
+    w_hidden = wt[~is_front]
+    flat_all = np.concatenate([front_flat, hidden_flat])
+    rr, cc = flat_all // W, flat_all % W
+    y0, y1 = max(0, int(rr.min()) - margin_px), min(H, int(rr.max()) + 1 + margin_px)
+    x0, x1 = max(0, int(cc.min()) - margin_px), min(W, int(cc.max()) + 1 + margin_px)
+    h, w = y1 - y0, x1 - x0
+    alpha = np.zeros((h, w), np.float32)
+    color = np.zeros((h, w, 3), np.float32)
+    fr, fc = front_flat // W - y0, front_flat % W - x0
+    alpha[fr, fc] = w_front
+    color[fr, fc] = w_front[:, None] * sources.img[front_flat // W, front_flat % W]
+    if hidden_flat.size:  # a hidden surface is >= 2 px of CoC behind the front one: never in its bins
+        assert sources.hidden_img is not None
+        hr, hc = hidden_flat // W - y0, hidden_flat % W - x0
+        alpha[hr, hc] = w_hidden
+        color[hr, hc] = w_hidden[:, None] * sources.hidden_img[hidden_flat // W, hidden_flat % W]
+    return (y0, y1, x0, x1), alpha, color
+
+
+def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tuple[str, ...], eff: EffectSet,
+                chroma: bool) -> dict[str, tuple[F32, F32]]:
+    """Blur one layer's alpha (h, w) and colour (h, w, 3) with its left, right (hflip) and full (their mean)
+    PSFs, on a pyramid level for large blurs. Returns ``{half: (alpha (h, w, 1 or 3) clipped to [0, 1],
+    colour (h, w, 3))}``; per-colour alphas only with ``chroma`` (kernels that differ per colour)."""
+    h, w = alpha.shape
+    s = _pyramid_factor(float(np.max(np.abs(coc3_px))) / 2.0)
+    if s > 1:
+        hp, wp = -(-h // s) * s, -(-w // s) * s
+        alpha_p = np.zeros((hp, wp), np.float32)
+        alpha_p[:h, :w] = alpha
+        color_p = np.zeros((hp, wp, 3), np.float32)
+        color_p[:h, :w] = color
+        alpha_l, color_l = _pyr_down(alpha_p, s), _pyr_down(color_p, s)
+    else:
+        alpha_l, color_l = alpha, color
+    kern = [left_kernel(coc3_px[ch] / s, eff) for ch in range(3)]
+    out = {}
+    for hname in halves:
+        if hname == "L":
+            ks = kern
+        elif hname == "R":
+            ks = [k[:, ::-1] for k in kern]
+        else:
+            ks = [0.5 * (k + k[:, ::-1]) for k in kern]
+        if not chroma:
+            ba = _conv(alpha_l, ks[1])[:, :, None]
+            bc = _conv(color_l, ks[1])
+        else:
+            ba = np.dstack([_conv(alpha_l, ks[ch]) for ch in range(3)])
+            bc = np.dstack([_conv(np.ascontiguousarray(color_l[:, :, ch]), ks[ch]) for ch in range(3)])
+        if s > 1:
+            ba = _pyr_up(ba, s)[:h, :w]
+            bc = _pyr_up(bc, s)[:h, :w]
+            if ba.ndim == 2:
+                ba = ba[:, :, None]
+        np.clip(ba, 0.0, 1.0, out=ba)
+        out[hname] = (ba, bc)
+    return out
+
+
+def _composite(sources: _Sources, layers: _Layers, halves: tuple[str, ...], eff: EffectSet, chroma: bool) -> dict[str, F32]:
+    """Composite the layers front to back per aperture half (module docstring) and crop the padding:
+    ``{half: (H, W, 3)}``, each normalised by its accumulated coverage (a full-aperture PSF sums to 1)."""
+    H, W = sources.shape
     acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
     cov_acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    chroma = effects is not None and eff.s("chromatic_defocus") > 0
     nT = 3 if chroma else 1  # one transmittance for all colours unless their kernels differ
     T = {h: np.ones((H, W, nT), np.float32) for h in halves}
     pending: dict[str, list] = {}
-    for li in np.argsort(zmean, kind="stable"):
-        members = order[starts[li] : starts[li + 1]]
-        src = all_src[members]
-        wt = all_w[members].astype(np.float32)
-        is_front = src < n_front
-        front_flat, w_front = src[is_front], wt[is_front]
-        hidden_flat = h_flat[src[~is_front] - n_front] if h_flat is not None else src[:0]
-        w_hidden = wt[~is_front]
-        flat_all = np.concatenate([front_flat, hidden_flat])
-        rr, cc = flat_all // W, flat_all % W
-        c3 = cmean[li]
-        R = float(np.max(np.abs(c3))) / 2.0
-        s = 1
-        while R / (2 * s) >= LOWRES_RADIUS_PX:
-            s *= 2
-        pad = int(math.ceil(R)) + 3
-        y0, y1 = max(0, int(rr.min()) - pad), min(H, int(rr.max()) + 1 + pad)
-        x0, x1 = max(0, int(cc.min()) - pad), min(W, int(cc.max()) + 1 + pad)
-        h, w = y1 - y0, x1 - x0
-        alpha = np.zeros((h, w), np.float32)
-        color = np.zeros((h, w, 3), np.float32)
-        fr, fc = front_flat // W - y0, front_flat % W - x0
-        alpha[fr, fc] = w_front
-        color[fr, fc] = w_front[:, None] * img[front_flat // W, front_flat % W]
-        if hidden_flat.size:  # a hidden surface is >= 2 px of CoC behind the front one: never in its bins
-            hr, hc = hidden_flat // W - y0, hidden_flat % W - x0
-            alpha[hr, hc] = w_hidden
-            color[hr, hc] = w_hidden[:, None] * h_img[hidden_flat // W, hidden_flat % W]
-        if s > 1:
-            hp, wp = -(-h // s) * s, -(-w // s) * s
-            alpha_p = np.zeros((hp, wp), np.float32)
-            alpha_p[:h, :w] = alpha
-            color_p = np.zeros((hp, wp, 3), np.float32)
-            color_p[:h, :w] = color
-            alpha_l, color_l = _pyr_down(alpha_p, s), _pyr_down(color_p, s)
-        else:
-            alpha_l, color_l = alpha, color
-        kern = [left_kernel(c3[ch] / s, eff) for ch in range(3)]
-        for hname in halves:
-            if hname == "L":
-                ks = kern
-            elif hname == "R":
-                ks = [k[:, ::-1] for k in kern]
-            else:
-                ks = [0.5 * (k + k[:, ::-1]) for k in kern]
-            if not chroma:
-                ba = _conv(alpha_l, ks[1])[:, :, None]
-                bc = _conv(color_l, ks[1])
-            else:
-                ba = np.dstack([_conv(alpha_l, ks[ch]) for ch in range(3)])
-                bc = np.dstack([_conv(np.ascontiguousarray(color_l[:, :, ch]), ks[ch]) for ch in range(3)])
-            if s > 1:
-                ba = _pyr_up(ba, s)[:h, :w]
-                bc = _pyr_up(bc, s)[:h, :w]
-                if ba.ndim == 2:
-                    ba = ba[:, :, None]
-            np.clip(ba, 0.0, 1.0, out=ba)
+    for li in np.argsort(layers.z_mm, kind="stable"):
+        c3 = layers.coc_px[li]
+        (y0, y1, x0, x1), alpha, color = _splat_layer(sources, layers, li, int(math.ceil(float(np.max(np.abs(c3))) / 2.0)) + 3)
+        for hname, (ba, bc) in _blur_layer(alpha, color, c3, halves, eff, chroma).items():
             # nearer layers whose blur is close to this one's are the same surface continued, not
             # occluders: they join the transmittance, as one group, once a layer clearly behind comes
             waiting = pending.setdefault(hname, [])
@@ -439,15 +536,9 @@ def render_dp(
             cov_acc[hname][y0:y1, x0:x1] += Tv * ba
             waiting.append((c_here, y0, y1, x0, x1, ba))
             pending[hname] = waiting
-    out = {}
+    P = sources.pad
     crop = (slice(P, H - P), slice(P, W - P))
-    for hname in halves:
-        out[hname] = acc[hname][crop] / np.maximum(cov_acc[hname][crop], 1e-6)
-    left = 0.5 * out["L"]
-    right = 0.5 * out["R"]
-    if view_effects:
-        left, right = apply_view_effects(left, right, eff)
-    return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), coc_out)
+    return {hname: acc[hname][crop] / np.maximum(cov_acc[hname][crop], 1e-6) for hname in halves}
 
 
 def apply_view_effects(left: F32, right: F32, effects: EffectSet) -> tuple[F32, F32]:
@@ -462,22 +553,24 @@ def apply_view_effects(left: F32, right: F32, effects: EffectSet) -> tuple[F32, 
     k_rl = np.full((1, W), kap, np.float32)  # fraction of R's light moved to L
     k_lr = np.full((1, W), kap, np.float32)  # fraction of L's light moved to R
     s_f = effects.s("field_varying_psf")
-    if s_f > 0:
-        k_rl = k_rl + 0.25 * s_f * np.maximum(0.0, -xn)
-        k_lr = k_lr + 0.25 * s_f * np.maximum(0.0, xn)
+    if s_f > 0:  # off-axis, light leaks towards the photodiode facing the optical axis, growing with |x|
+        leak = effect_parameters("field_varying_psf", s_f)["edge_leak"]
+        k_rl = k_rl + leak * np.maximum(0.0, -xn)
+        k_lr = k_lr + leak * np.maximum(0.0, xn)
     if kap > 0 or s_f > 0:
-        k_rl = np.minimum(k_rl, 0.5)[:, :, None]
-        k_lr = np.minimum(k_lr, 0.5)[:, :, None]
+        k_rl = np.minimum(k_rl, MAX_CROSSTALK)[:, :, None]
+        k_lr = np.minimum(k_lr, MAX_CROSSTALK)[:, :, None]
         left, right = left * (1 - k_lr) + right * k_rl, right * (1 - k_rl) + left * k_lr
     s_g = effects.s("lr_gain_imbalance")
-    if s_g > 0:
-        log_rho = s_g * (0.18 + 0.10 * xn - 0.06 * yn**2)
-        rho = np.exp(log_rho)[:, :, None]
+    if s_g > 0:  # log(L/R) = c0 + cx x_n + cyy y_n^2; left + right keeps its brightness
+        c0, cx, cyy = effect_parameters("lr_gain_imbalance", s_g)["log_ratio_coeffs"]
+        rho = np.exp(c0 + cx * xn + cyy * yn**2)[:, :, None]
         left = left * (2.0 * rho / (1.0 + rho))
         right = right * (2.0 / (1.0 + rho))
     s_m = effects.s("misregistration")
-    if s_m > 0:
-        dx, dy = 0.0030 * s_m * W, -0.0015 * s_m * H
+    if s_m > 0:  # both views shift by a fraction of the image size
+        fx, fy = effect_parameters("misregistration", s_m)["shift_frac"]
+        dx, dy = fx * W, fy * H
         left = fourier_shift(left, dx, dy)
         right = fourier_shift(right, dx, dy)
     return left.astype(np.float32), right.astype(np.float32)

@@ -138,8 +138,8 @@ def parse_effect(text: str) -> tuple[str, float]:
         raise BadInputError(f"unknown effect {name!r} in {text!r} (known: {', '.join(EFFECT_NAMES)})")
     try:
         s = float(val) if val.strip() else 1.0
-    except ValueError:
-        raise BadInputError(f"effect strength in {text!r} is not a number") from None
+    except ValueError as exc:
+        raise BadInputError(f"effect strength in {text!r} is not a number") from exc
     if not (math.isfinite(s) and s >= 0):
         raise BadInputError(f"effect strength in {text!r} must be >= 0")
     return name, s

@@ -74,8 +74,8 @@ def _pose_to_Rt(pose: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         return pose[:3, :3].astype(float), pose[:3, 3].astype(float)
     try:
         r, t = pose
-    except Exception:
-        raise BadInputError("board pose must be (R or rvec, t) or a 4x4 matrix") from None
+    except Exception as exc:
+        raise BadInputError("board pose must be (R or rvec, t) or a 4x4 matrix") from exc
     r = np.asarray(r, dtype=float)
     t = np.asarray(t, dtype=float).reshape(3)
     if r.shape == (3, 3):

@@ -39,7 +39,7 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure to unpickle is a bad file
-        raise BadInputError(f"not a readable checkpoint ({type(exc).__name__})", where=path) from None
+        raise BadInputError(f"not a readable checkpoint ({type(exc).__name__})", where=path) from exc
     if not isinstance(state, dict) or "model" not in state:
         raise BadInputError("not a dp5k checkpoint (no 'model')", where=path)
     return state

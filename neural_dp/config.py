@@ -97,9 +97,9 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
         if isinstance(current, float):
             return float(value)
         return str(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError) as exc:
         kind = {int: "an integer", float: "a number"}.get(type(current), "a string")
-        raise BadInputError(f"'{key}' must be {kind}, got {value!r}", where="config") from None
+        raise BadInputError(f"'{key}' must be {kind}, got {value!r}", where="config") from exc
 
 
 def _apply(obj: Any, updates: dict[str, Any], prefix: str = "") -> Any:
@@ -134,7 +134,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         try:
             data = json.loads(p.read_text()) if p.suffix == ".json" else tomllib.loads(p.read_text())
         except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise BadInputError(f"cannot parse config: {exc}", where=p) from None
+            raise BadInputError(f"cannot parse config: {exc}", where=p) from exc
         cfg = from_dict(data, cfg)
     for item in overrides:
         if "=" not in item:

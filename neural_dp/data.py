@@ -11,7 +11,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from dp5k_common.dataset import DatasetReader, Pair
-from dp5k_common.errors import DatasetFormatError
+from dp5k_common.errors import EmptySplitError
 
 from .batch import DPBatch
 
@@ -54,7 +54,7 @@ class DPPairDataset(Dataset):
         self.reader = DatasetReader(root)
         self.ids = self.reader.ids(split)
         if not self.ids:
-            raise DatasetFormatError(f"split '{split}' is empty", where=self.reader.root / "dataset.json")
+            raise EmptySplitError(f"split '{split}' is empty", where=self.reader.root / "dataset.json")
         self.split = split
         self.crop = crop or CropSpec()
         self.seed = seed

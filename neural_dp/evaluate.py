@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from dp5k_common.dataset import DatasetReader
-from dp5k_common.errors import BadInputError
+from dp5k_common.errors import BadInputError, EmptySplitError
 from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
 
@@ -55,7 +55,7 @@ class EvalResult:
 def _fit_batches(root: Path, n_pairs: int, crop_px: int, device: torch.device) -> list[DPBatch]:
     try:
         ds = DPPairDataset(root, "train", CropSpec(crop_px, vflip=False), seed=0)
-    except Exception:  # noqa: BLE001 - an empty train split just means nothing to fit on
+    except EmptySplitError:  # nothing to fit on: the simulators keep their published defaults
         return []
     return [collate_dp([ds[i]]).to(device) for i in range(min(n_pairs, len(ds.ids)))]
 
@@ -134,7 +134,8 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         fit_pairs / fit_crop_px: training crops given to simulators with free parameters.
 
     Raises:
-        BadInputError: empty split, unknown simulator, ``neural`` requested without a checkpoint.
+        EmptySplitError: the split to evaluate is empty.
+        BadInputError: unknown simulator, ``neural`` requested without a checkpoint.
     """
     root, out = Path(dataset), Path(out_dir)
     reader = DatasetReader(root)
@@ -142,7 +143,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     if max_pairs > 0:
         ids = ids[:max_pairs]
     if not ids:
-        raise BadInputError(f"split '{split}' has no pairs to evaluate", where=root / "dataset.json")
+        raise EmptySplitError(f"split '{split}' has no pairs to evaluate", where=root / "dataset.json")
     names = simulators or available_simulators(with_neural=checkpoint is not None)
     if "neural" in names and checkpoint is None:
         raise BadInputError("evaluating 'neural' needs a checkpoint (dp5k train, or --checkpoint)", where="evaluate")

@@ -20,7 +20,6 @@ tables report). Images with no valid pixel give NaN.
 
 from __future__ import annotations
 
-import math
 
 import torch
 import torch.nn.functional as F
@@ -127,8 +126,3 @@ def view_metrics(pred_l: Tensor, pred_r: Tensor, gt_l: Tensor, gt_r: Tensor, mas
     for name, fn in (("mae", masked_mae), ("psnr", masked_psnr), ("ssim", masked_ssim)):
         out[name] = 0.5 * (fn(pred_l, gt_l, mask) + fn(pred_r, gt_r, mask))
     return out
-
-
-def psnr_from_mse(mse: float, data_range: float = 1.0) -> float:
-    """PSNR in dB of a mean squared error (helper for reports)."""
-    return 10.0 * math.log10(data_range**2 / max(mse, 1e-20))

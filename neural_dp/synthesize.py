@@ -129,7 +129,7 @@ def load_frame(folder: Path, encoding: str = "srgb", depth_scale: float = 1.0) -
         try:
             d = np.load(folder / "depth.npy", allow_pickle=False)
         except (ValueError, OSError) as exc:
-            raise BadInputError(f"cannot read ({exc})", where=folder / "depth.npy") from None
+            raise BadInputError(f"cannot read ({exc})", where=folder / "depth.npy") from exc
         if d.ndim != 2:
             raise BadInputError(f"must be (H, W), got {d.shape}", where=folder / "depth.npy")
         depth = np.where(np.isfinite(d) & (d > 0), d * depth_scale, 0).astype(np.float32)
@@ -143,7 +143,7 @@ def load_frame(folder: Path, encoding: str = "srgb", depth_scale: float = 1.0) -
     except BadInputError:
         raise
     except Exception as exc:  # noqa: BLE001
-        raise BadInputError(f"cannot read ({exc})", where=ipath) from None
+        raise BadInputError(f"cannot read ({exc})", where=ipath) from exc
     if not isinstance(intr, dict) or any(k not in intr for k in ("fx", "fy", "width", "height")):
         raise BadInputError("needs fx, fy, cx, cy, width, height (px)", where=ipath)
     if int(intr["width"]) != W or int(intr["height"]) != H:

@@ -22,20 +22,19 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 
-from dp5k_common.errors import BadInputError, DatasetFormatError, StageError
+from dp5k_common.errors import BadInputError, EmptySplitError, StageError
 from dp5k_common.io import write_json_atomic
 from dp5k_common.progress import progress
 
 from . import distributed as D
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import TrainConfig, from_dict
+from .config import TrainConfig
 from .data import CropSpec, DPPairDataset, collate_dp
 from .losses import dp_loss
 from .metrics import view_metrics
@@ -114,10 +113,8 @@ def _seed_all(seed: int) -> None:
 def _open(root: Path, split: str, crop: CropSpec, seed: int, length: int = 0) -> DPPairDataset | None:
     try:
         return DPPairDataset(root, split, crop, seed=seed, length=length)
-    except DatasetFormatError as exc:
-        if "is empty" in exc.message:
-            return None
-        raise
+    except EmptySplitError:
+        return None
 
 
 def train(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], cfg: TrainConfig, *, resume: bool = True,
@@ -152,7 +149,7 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
     crop = CropSpec(cfg.data.crop_px, cfg.data.min_valid_fraction, vflip=cfg.data.vflip)
     train_ds = _open(root, "train", crop, cfg.seed, cfg.data.samples_per_epoch)
     if train_ds is None:
-        raise DatasetFormatError("the train split is empty; nothing to train on", where=root / "dataset.json")
+        raise EmptySplitError("the train split is empty; nothing to train on", where=root / "dataset.json")
     val_ds = _open(root, "val", CropSpec(), cfg.seed)
     if val_ds is None:
         logger.warning("%s: empty val split; selecting the checkpoint on the train split", root)
@@ -266,9 +263,3 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
         if bar is not None:
             bar.close()
     return TrainResult(out, float(best_ssim), int(best_epoch), len(history), step, history)
-
-
-def config_from_checkpoint(state: dict[str, Any]) -> TrainConfig:
-    """The :class:`TrainConfig` a checkpoint was trained with."""
-    return from_dict(state.get("config", {}))
-

@@ -55,3 +55,19 @@ def test_common_imports_no_stage() -> None:
 def test_a_missing_package_fails_the_check() -> None:
     with pytest.raises(AssertionError, match="not a package"):
         imported_modules("no_such_package")
+
+
+def test_benchmarks_import_the_package_never_the_tests() -> None:
+    found: set[str] = set()
+    for path in (ROOT / "benchmarks").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                found.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                found.add(node.module)
+    assert found and not sorted(m for m in found if m.split(".")[0] == "tests")
+
+
+def test_the_pipeline_never_imports_the_test_support_package() -> None:
+    for package in STAGES:
+        assert not offending(package, ("dp5k_testing", "tests")), package

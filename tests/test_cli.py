@@ -7,7 +7,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from dp5k_cli import main
-from tests.helpers.tiny_dataset import make_tiny_dataset
+from dp5k_testing.tiny_dataset import make_tiny_dataset
 
 
 def test_help_lists_commands() -> None:
@@ -76,3 +76,14 @@ def test_help_does_not_import_heavy_stages() -> None:
 def test_unknown_command_is_a_usage_error() -> None:
     result = CliRunner().invoke(main, ["nope"])
     assert result.exit_code == 2 and "No such command" in result.output
+
+
+def test_verbose_shows_the_chained_cause(tmp_path: Path) -> None:
+    """A user error keeps its original exception as the cause: one line without -v, the chain with it."""
+    args = ["studio", "make-dataset", str(tmp_path / "ds"), "--size", "288xabc"]
+    quiet = CliRunner().invoke(main, args)
+    assert quiet.exit_code == 3 and "Traceback" not in quiet.output and "--size" in quiet.output
+    loud = CliRunner().invoke(main, ["-v"] + args)
+    assert loud.exit_code == 3
+    assert "ValueError" in loud.output and "direct cause of the following exception" in loud.output
+    assert not (tmp_path / "ds").exists()

@@ -79,7 +79,7 @@ def parse_events(data: bytes, *, where: str | None = None) -> list[EosRecord]:
         try:
             out.append(_decode(code, rec))
         except ProtocolError as exc:
-            raise ProtocolError(f"event 0x{code:04X} at byte {pos}: {exc.message}", where=where) from None
+            raise ProtocolError(f"event 0x{code:04X} at byte {pos}: {exc.message}", where=where) from exc
         pos += size
     return out
 

@@ -208,7 +208,7 @@ class PTPSession:
                     self.transport.cancel(tid)
                 except DeviceError:
                     pass
-                raise PTPTimeoutError(f"{step}: {exc.message}", where=self.name) from None
+                raise PTPTimeoutError(f"{step}: {exc.message}", where=self.name) from exc
             except DeviceError as exc:
                 if not exc.message.startswith(step):
                     exc.message = f"{step}: {exc.message}"
@@ -270,9 +270,6 @@ class PTPSession:
 
     def get_device_prop_value(self, prop: int) -> bytes:
         return self.transaction(Op.GET_DEVICE_PROP_VALUE, (prop,), data_in=True).data
-
-    def set_device_prop_value(self, prop: int, value: bytes) -> None:
-        self.transaction(Op.SET_DEVICE_PROP_VALUE, (prop,), data_out=value)
 
     def cancel(self) -> None:
         """Still Image class request Cancel for the last transaction."""

@@ -75,7 +75,7 @@ class UsbTransport:
             try:
                 device.set_configuration()
             except usb.core.USBError as exc:
-                raise map_usb_error(exc, self.name, "set configuration") from None
+                raise map_usb_error(exc, self.name, "set configuration") from exc
             cfg = device.get_active_configuration()
         intf = usb.util.find_descriptor(cfg, bInterfaceClass=PTP_INTERFACE_CLASS)
         if intf is None:
@@ -103,7 +103,7 @@ class UsbTransport:
         try:
             usb.util.claim_interface(device, self.interface)
         except usb.core.USBError as exc:
-            raise map_usb_error(exc, self.name, "claim interface") from None
+            raise map_usb_error(exc, self.name, "claim interface") from exc
 
     def write(self, data: bytes, timeout_ms: int) -> None:
         try:
@@ -113,13 +113,13 @@ class UsbTransport:
             if data and len(data) % int(self.ep_out.wMaxPacketSize) == 0:
                 self.ep_out.write(b"", timeout_ms)  # zero-length packet ends the transfer
         except usb.core.USBError as exc:
-            raise map_usb_error(exc, self.name, "bulk OUT") from None
+            raise map_usb_error(exc, self.name, "bulk OUT") from exc
 
     def read(self, size: int, timeout_ms: int) -> bytes:
         try:
             return bytes(self.ep_in.read(size, timeout_ms))
         except usb.core.USBError as exc:
-            raise map_usb_error(exc, self.name, "bulk IN") from None
+            raise map_usb_error(exc, self.name, "bulk IN") from exc
 
     def read_event(self, size: int, timeout_ms: int) -> bytes:
         if self.ep_int is None:
@@ -129,13 +129,13 @@ class UsbTransport:
         except usb.core.USBTimeoutError:
             return b""
         except usb.core.USBError as exc:
-            raise map_usb_error(exc, self.name, "interrupt IN") from None
+            raise map_usb_error(exc, self.name, "interrupt IN") from exc
 
     def _ctrl(self, req_type: int, req: int, data: Any, step: str) -> Any:
         try:
             return self.device.ctrl_transfer(req_type, req, 0, self.interface, data, 2000)
         except usb.core.USBError as exc:
-            raise map_usb_error(exc, self.name, step) from None
+            raise map_usb_error(exc, self.name, step) from exc
 
     def cancel(self, tid: int) -> None:
         """Class request Cancel (0x64): data = CancellationCode 0x4001 (u16) + TransactionID (u32)."""
@@ -158,7 +158,7 @@ class UsbTransport:
             try:
                 self.device.clear_halt(ep.bEndpointAddress)
             except usb.core.USBError as exc:
-                raise map_usb_error(exc, self.name, "clear halt") from None
+                raise map_usb_error(exc, self.name, "clear halt") from exc
 
     def close(self) -> None:
         try:

@@ -10,7 +10,6 @@ projector throws on the scene is its HDMI input while it is on, on the HDMI sour
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 import tty
@@ -161,38 +160,6 @@ class SimulatedEBU42:
         self._threads.append(t)
         self._fds = [master, slave]
         return path
-
-    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> int:
-        """Serve on a TCP socket (for pyserial ``socket://`` and the epson-projector client); returns the port."""
-        srv = socket.socket()
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind((host, port))
-        srv.listen(4)
-        srv.settimeout(0.1)
-        self._srv = srv
-
-        def accept_loop() -> None:
-            while not self._stop.is_set():
-                try:
-                    conn, _ = srv.accept()
-                except (TimeoutError, socket.timeout):
-                    continue
-                except OSError:
-                    return
-                conn.settimeout(0.1)
-
-                def read(c: socket.socket = conn) -> bytes:
-                    try:
-                        return c.recv(256)
-                    except (TimeoutError, socket.timeout):
-                        return None  # type: ignore[return-value]
-
-                threading.Thread(target=self._serve, args=(read, conn.sendall), daemon=True).start()
-
-        t = threading.Thread(target=accept_loop, daemon=True)
-        t.start()
-        self._threads.append(t)
-        return int(srv.getsockname()[1])
 
     def stop(self) -> None:
         self._stop.set()

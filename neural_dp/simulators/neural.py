@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, fields
+from dataclasses import fields
 from typing import Any
 
 import torch
@@ -49,7 +49,7 @@ class NeuralDPSimulator(DPSimulator):
         try:
             state: dict[str, Any] = torch.load(path, map_location=map_location, weights_only=True)
         except Exception as exc:  # noqa: BLE001 - any unpickling problem is a bad file
-            raise BadInputError(f"not a readable dp5k checkpoint ({type(exc).__name__}: {exc})", where=path) from None
+            raise BadInputError(f"not a readable dp5k checkpoint ({type(exc).__name__}: {exc})", where=path) from exc
         if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
             raise BadInputError("not a dp5k Neural DP checkpoint (no 'model' / 'model_config')", where=path)
         known = {f.name for f in fields(ModelConfig)}
@@ -58,9 +58,6 @@ class NeuralDPSimulator(DPSimulator):
         sim.net.load_state_dict(state["model"])
         sim.eval()
         return sim
-
-    def config_dict(self) -> dict[str, Any]:
-        return asdict(self.cfg)
 
     def forward(self, batch: DPBatch) -> tuple[Tensor, Tensor]:  # type: ignore[override]
         inputs = model_inputs(batch, self.cfg.coc_scale_px)

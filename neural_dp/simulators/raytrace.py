@@ -21,7 +21,6 @@ with ``n >= |C|`` chosen per pixel (even, so no point sits on the split), i.e. a
 
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor

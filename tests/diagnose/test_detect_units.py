@@ -13,7 +13,7 @@ from dp5k_diagnose.data import Sample, predictable_mask
 from dp5k_diagnose import detect
 from dp5k_diagnose.detect import DetectConfig, Finding, copy_base, discriminate
 from neural_dp.simulators.base import BaseModel, field_coords
-from tests.diagnose.test_base_model import make_batch
+from tests.neural_dp.test_base_model import make_batch
 
 SHOT, READ = 2.0e-5, 1.0e-3
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
+import dp5k_studio.dataset as studio
 
-studio = pytest.importorskip("dp5k_studio.dataset")
 
 CASES = (*EFFECT_NAMES, NO_EFFECT)
 SIZE = (160, 96)

@@ -1,4 +1,4 @@
-"""diagnose on data from a renderer that shares no code with dp5k (tests/helpers/foreign_dp.py).
+"""diagnose on data from a renderer that shares no code with dp5k (dp5k_testing/foreign_dp.py).
 
 The studio and the base model were built side by side; an outside suite plants the same vocabulary with its
 own renderer. This one scatters every pixel's half disc, has its own scenes, textures and effect formulas,
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
-from tests.helpers.foreign_dp import write_dataset
+from dp5k_testing.foreign_dp import write_dataset
 
 pytestmark = pytest.mark.slow
 

@@ -16,8 +16,8 @@ import torch
 
 from dp5k_diagnose.data import Sample, read_sharp_at
 from neural_dp.batch import DPBatch
+import dp5k_studio.dataset as studio
 
-studio = pytest.importorskip("dp5k_studio.dataset")
 
 
 def _strip_key(root: Path) -> None:

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from neural_dp.checkpoint import load_checkpoint
-from tests.helpers.tiny_dataset import make_tiny_dataset
+from dp5k_testing.tiny_dataset import make_tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -104,7 +104,7 @@ def test_multiscale_kernel_moves_content_beyond_5x5_reach_and_right_view_mirrors
 def test_a_run_saved_before_the_option_existed_still_resumes(tmp_path) -> None:
     from neural_dp.config import load_config
     from neural_dp.train import train
-    from tests.helpers.tiny_dataset import make_tiny_dataset
+    from dp5k_testing.tiny_dataset import make_tiny_dataset
 
     ds = tmp_path / "ds"
     make_tiny_dataset(ds, scenes=3, W=48, H=32)

@@ -15,7 +15,7 @@ from neural_dp.checkpoint import load_checkpoint
 from neural_dp.config import load_config
 from neural_dp.simulators.registry import get_simulator
 from neural_dp.train import train
-from tests.helpers.tiny_dataset import make_tiny_dataset
+from dp5k_testing.tiny_dataset import make_tiny_dataset
 
 TINY = ["model.base_channels=4", "model.levels=2", "data.crop_px=32", "data.batch_size=2",
         "data.samples_per_epoch=2", "optim.epochs=2", "device=cpu"]

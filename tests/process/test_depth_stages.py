@@ -12,7 +12,7 @@ from dp5k_process.filters import close_holes, recursive_fill, statistical_outlie
 from dp5k_process.focus import FocusConfig, focus_distance, huber_skip_mean
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
 from dp5k_process.triangulate import code_view, depth_from_match, match_in_other, normalised_rays
-from .synth import PlaneScene, look_at_rig, render_projection
+from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection
 
 
 @pytest.fixture(scope="module")

@@ -105,8 +105,8 @@ def test_mixed_codes_flags_depth_edges_only():
 @pytest.mark.slow
 def test_capture_sim_demo01_focus_behind_occluder(tmp_path):
     """``dp5k capture --sim`` demo01 processes: depth on the parts hidden from the other camera, focus right."""
-    from .sim_session import assert_depth_and_focus, capture_and_process
-    from .truth import half
+    from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process
+    from dp5k_testing.truth import half
 
     gt, truth, reader = capture_and_process(tmp_path, "demo01")
     for cam in ("cam0", "cam1"):

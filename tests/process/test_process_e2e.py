@@ -14,8 +14,8 @@ from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
 from dp5k_process.pipeline import ProcessConfig
 from dp5k_process.validate import plane_error, validate_depth
-from .sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
-from .truth import half, seen_by_both
+from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
+from dp5k_testing.truth import half, seen_by_both
 
 pytestmark = pytest.mark.slow
 

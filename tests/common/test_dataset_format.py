@@ -13,7 +13,7 @@ import tifffile
 
 from dp5k_common.dataset import DatasetReader, PairParams, split_scenes, write_index, write_pair
 from dp5k_common.errors import DatasetFormatError
-from tests.helpers.tiny_dataset import make_arrays, make_params, make_tiny_dataset
+from dp5k_testing.tiny_dataset import make_arrays, make_params, make_tiny_dataset
 
 
 @pytest.fixture()
@@ -205,3 +205,30 @@ def test_params_json_roundtrip_rejects_bool() -> None:
     obj["f_number"] = True
     with pytest.raises(DatasetFormatError):
         PairParams.from_json(obj, "x")
+
+
+@pytest.mark.parametrize(
+    "keys, match",
+    [
+        ({"crop_origin_px": [0, 0]}, "needs 'full_image_size' too"),
+        ({"full_image_size": [96, 64]}, "needs 'crop_origin_px' too"),
+        ({"crop_origin_px": [0.5, 0], "full_image_size": [96, 64]}, "'crop_origin_px' must be a list of 2 integers"),
+        ({"crop_origin_px": [0, 0], "full_image_size": "96x64"}, "'full_image_size' must be a list of 2 integers"),
+        ({"crop_origin_px": [80, 0], "full_image_size": [96, 64]}, "does not fit"),
+        ({"crop_origin_px": [-1, 0], "full_image_size": [96, 64]}, "does not fit"),
+    ],
+)
+def test_bad_tile_geometry_is_refused(ds: Path, keys: dict, match: str) -> None:
+    """A tile's place in its frame sets the field coordinates diagnose fits with: malformed, it is an error."""
+    path = pair_dir(ds) / "params.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **keys}))
+    with pytest.raises(DatasetFormatError, match=match):
+        DatasetReader(ds).load("s0_cam0_f1.8")
+
+
+def test_tile_geometry_reads_back(ds: Path) -> None:
+    reader = DatasetReader(ds)
+    assert reader.load("s0_cam0_f1.8").params.frame_geometry == ((0, 0), (24, 16))
+    path = pair_dir(ds) / "params.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "crop_origin_px": [8, 4], "full_image_size": [96, 64]}))
+    assert DatasetReader(ds).load("s0_cam0_f1.8").params.frame_geometry == ((8, 4), (96, 64))

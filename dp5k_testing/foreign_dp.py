@@ -381,6 +381,6 @@ def write_dataset(
                 params["sharp_f_number"] = float(sharp_f_number or 0.0)
             (d / "params.json").write_text(json.dumps(params, indent=1))
             splits[split].append(pid)
-    index = {"format": "dp5k-dataset", "version": 1, "splits": splits, "generator": "tests.helpers.foreign_dp"}
+    index = {"format": "dp5k-dataset", "version": 1, "splits": splits, "generator": "dp5k_testing.foreign_dp"}
     (out / "dataset.json").write_text(json.dumps(index, indent=1))
     return splits

@@ -13,7 +13,7 @@ from calib.calibrate import (CalibConfig, CameraCalibration, StereoCalibration, 
                              rectify_images, rotation_angle_deg, stereo_calibrate)
 from calib.detect import detect_charuco
 from dp5k_common.errors import CalibrationError
-from .synth import render_board, rot
+from dp5k_testing.procam_synth import render_board, rot
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 K = np.array([[700.0, 0, 319.5], [0, 700, 239.5], [0, 0, 1]])

@@ -1,0 +1,11 @@
+"""Test support that ships with dp5k: the tests and the benchmarks both build their inputs with it.
+
+* :mod:`.tiny_dataset`: tiny valid format-v1 datasets without the studio.
+* :mod:`.foreign_dp`: a DP renderer and dataset writer that share no code with dp5k (per-pixel scattered
+  half discs, its own scenes, its own formula for each effect), so diagnose is checked on data it did not make.
+* :mod:`.procam_synth`: a board or a projector image seen by a pinhole camera (processing unit tests).
+* :mod:`.sim_session`, :mod:`.truth`: a small simulated raw capture session written with the virtual studio
+  (``dp5k process``), and its ground truth seen the way processing sees it.
+
+Nothing in the pipeline imports this package; it sits on top, beside ``dp5k_demo``.
+"""

@@ -1,1 +1,0 @@
-"""Shared test helpers (tiny data makers). Not a test module."""
