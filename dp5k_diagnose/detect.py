@@ -1,6 +1,6 @@
 r"""Name the cause: test every effect of the vocabulary against the fitted base model.
 
-For each effect E the base model is extended with E's component (:mod:`dp5k_diagnose.components`), whose
+For each effect E the base model is extended with E's component (:mod:`neural_dp.simulators.base.components`), whose
 parameters (plus the base model's gain and rim softness, which trade off against it) are fitted on the *fit* set
 (training crops). The extension is then judged on a *detection* set of pairs it was not fitted on
 (validation split, else the remaining training pairs), tile by tile:
@@ -38,7 +38,7 @@ from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.progress import progress
 from neural_dp.simulators.base import BaseModel, fit_parameters
 
-from .components import COMPONENTS, Noise, fittable_names
+from neural_dp.simulators.base.components import COMPONENTS, Noise, fittable_names
 from .data import Sample
 
 log = logging.getLogger(__name__)

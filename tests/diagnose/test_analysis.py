@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from dp5k_diagnose.analysis import tile_disparity
-from dp5k_diagnose.components import COMPONENTS, DisparityScale, LRGainImbalance, shift_image
+from neural_dp.simulators.base.components import COMPONENTS, DisparityScale, LRGainImbalance, shift_image
 from dp5k_diagnose.detect import one_sided_t
 from dp5k_diagnose.gain import bootstrap_ci
 from dp5k_common.effects import EFFECT_NAMES

@@ -79,7 +79,7 @@ def test_predictable_mask_drops_pixels_whose_blur_reaches_past_the_border() -> N
 
 def test_discriminate_prefers_the_effect_that_adds_something() -> None:
     """Two detected gain-imbalance fits: the one with a centre ratio (what the data needs) wins the nested test."""
-    from dp5k_diagnose.components import COMPONENTS
+    from neural_dp.simulators.base.components import COMPONENTS
 
     sharp = scene(4)
     base = BaseModel(rim_softness_px=0.0)
@@ -201,7 +201,7 @@ def test_disparity_scale_is_at_most_the_ideal_split(true_crosstalk: float) -> No
     """Crosstalk shrinks disparity, and the fit finds how much (0.8 of ideal for 0.1); views with more disparity
     than the ideal half-aperture split (what a rim-heavy aperture gives) fit at the bound 1, not above it:
     unbounded, it took the place of front_back_asymmetry on a planted set."""
-    from dp5k_diagnose.components import crosstalk
+    from neural_dp.simulators.base.components import crosstalk
 
     H, W = 48, 96
     sharp = torch.nn.functional.avg_pool2d(scene(8, n=2, H=H, W=W), 3, 1, 1)
@@ -223,7 +223,7 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
     blur's shape: the front parameters stay neutral even when near-focus front pixels would pull them (here
     they are rendered 0.6 x smaller, as a sharp frame that is itself slightly blurred makes them look), while
     the back rim gain is fitted. With content on both sides all three are fitted."""
-    from dp5k_diagnose.components import COMPONENTS
+    from neural_dp.simulators.base.components import COMPONENTS
 
     H, W = 48, 96
     sharp = torch.nn.functional.avg_pool2d(scene(9, n=2, H=H, W=W), 3, 1, 1)
@@ -297,7 +297,7 @@ def test_gain_report_leaves_out_a_pair_without_pixels_and_stays_valid_json() -> 
 def test_an_effect_keeps_the_refit_rim_softness_only_where_the_detection_set_prefers_it(true_rim: str) -> None:
     """The refit rim softness of an effect's extension is replaced by the base model's when that predicts the
     detection pairs better (and kept when it does not); the effect's own parameters stay as fitted."""
-    from dp5k_diagnose.components import COMPONENTS
+    from neural_dp.simulators.base.components import COMPONENTS
 
     sharp = scene(5)
     B, _, H, W = sharp.shape
@@ -356,7 +356,7 @@ def test_noise_is_measured_again_against_the_detected_effect() -> None:
     """Too little DP disparity (crosstalk) on texture that is nowhere flat: against the base model the views'
     L - R error reads as excess noise and is detected; measured against the base model with the detected
     disparity_scale it is the nominal noise again, and the finding says against what it was measured."""
-    from dp5k_diagnose.components import COMPONENTS
+    from neural_dp.simulators.base.components import COMPONENTS
 
     g = torch.Generator().manual_seed(11)
     B, H, W = 4, 64, 96

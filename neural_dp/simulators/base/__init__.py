@@ -16,7 +16,8 @@ depth edges or image borders).
 Effects the base model lacks (L/R gain imbalance, field dependence, colour dependence, ...) are added as
 :class:`Component` objects: each may change the per-channel CoC map, the per-node PSF shape (per colour
 channel and field radius) or the rendered views, and carries its own parameters fitted on training data.
-``dp5k_diagnose.components`` holds the effect vocabulary's components.
+:mod:`.components` holds the components of the effect vocabulary (``dp5k_common.effects``), which
+``dp5k diagnose`` detects and fits.
 
 The package, one job per module: :mod:`.psf` (half-disc kernels and their cache), :mod:`.render` (the
 occlusion-aware layered renderer), :mod:`.sharp` (undoing the sharp frame's own blur), :mod:`.model`

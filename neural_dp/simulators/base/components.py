@@ -39,7 +39,9 @@ from torch import Tensor
 
 from dp5k_common.optics import coc_diameter_px
 from neural_dp.batch import DPBatch
-from neural_dp.simulators.base import Component, PSFShape, field_r2
+from .field import field_r2
+from .model import Component
+from .psf import PSFShape
 
 
 class LRGainImbalance(Component):
