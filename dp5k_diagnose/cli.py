@@ -8,6 +8,9 @@ from pathlib import Path
 import click
 
 from dp5k_common.errors import BadInputError
+from neural_dp.config import FinetuneConfig
+
+from .model_spec import ModelSpec
 
 log = logging.getLogger(__name__)
 
@@ -20,7 +23,7 @@ log = logging.getLogger(__name__)
 @click.option("--fit-pairs", default=6, show_default=True, help="Training pairs used to fit.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
-@click.option("--neural-steps", default=150, show_default=True, type=click.IntRange(1),
+@click.option("--neural-steps", default=FinetuneConfig.steps, show_default=True, type=click.IntRange(1),
               help="For neural:CKPT: fine-tuning steps of the structural extension and of its control (each).")
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
@@ -32,10 +35,10 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
     """
     from .detect import DetectConfig
+    from .neural_reach import NeuralReachConfig
     from .run import DiagnoseConfig, run_diagnose
 
-    if not (model in ("base", "disk", "butterworth", "raytrace") or model.startswith("neural:")):
-        raise BadInputError(f"unknown model {model!r} (base, disk, butterworth, raytrace or neural:CKPT)", where="--model")
+    spec = ModelSpec.parse(model)
     try:
         shot_var, read_sigma = (float(v) for v in nominal_noise.split(","))
     except ValueError as exc:
@@ -51,10 +54,11 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         if not (sharp_n >= 0 and sharp_n < float("inf")):
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
-    out = out_dir or (dataset / f"diagnose-{model.replace(':', '_').replace('/', '_')}")
+    out = out_dir or (dataset / f"diagnose-{spec.folder_name()}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
-    res = run_diagnose(dataset, model, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect,
-                                                                neural_steps=neural_steps, sharp_f_number=sharp_n))
+    neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps))
+    res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect, neural=neural,
+                                                          sharp_f_number=sharp_n))
     g = res["gain"]
     sr = res.get("sharp_reading") or {}
     if sr.get("source") == "selected":

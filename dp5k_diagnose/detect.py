@@ -155,6 +155,10 @@ def copy_base(base: BaseModel) -> BaseModel:
     return base.replaced([])
 
 
+VIEW_CHANNELS = 6
+"""Terms per scored pixel in a squared error of both views: 2 views x 3 colour channels."""
+
+
 def tile_sums(x: Tensor, mask: Tensor, tile: int) -> tuple[Tensor, Tensor]:
     """Per-tile sums of ``x`` (B, C, H, W) over channels and pixels, and per-tile valid pixel counts.
 
@@ -176,7 +180,7 @@ def residual(model: BaseModel, s: Sample) -> Tensor:
 def masked_mse(model: BaseModel, samples: list[Sample]) -> float:
     """Mean squared error of both views over the samples' scored pixels (linear units squared)."""
     se = sum(float(residual(model, s).pow(2).mul(s.score).sum()) for s in samples)
-    n = sum(6.0 * float(s.score.sum()) for s in samples)
+    n = sum(VIEW_CHANNELS * float(s.score.sum()) for s in samples)
     return se / max(n, 1.0)
 
 
@@ -212,13 +216,19 @@ def kept_tiles(counts: np.ndarray) -> np.ndarray:
     return counts >= max(KEEP_TILE_SHARE * float(counts.max()), 1.0)
 
 
+MIN_PAIRS_AS_UNITS = 4
+"""With fewer detection pairs than this, the statistics' units are tiles instead of pairs."""
+SSE_EPS = 1e-20
+"""Added to squared-error sums (linear units^2) inside log ratios, so an empty tile gives 0, not NaN."""
+
+
 def clustered_delta(base_su: np.ndarray, su: np.ndarray, co: np.ndarray, owners: np.ndarray) -> np.ndarray:
     """Per-pair log MSE ratio ``ln(MSE_base / MSE_E)`` (tiles of one pair are correlated, pairs are the
     independent units; a log ratio is comparable across pairs with little and much blur); per tile when
-    fewer than 4 pairs are available."""
+    fewer than :data:`MIN_PAIRS_AS_UNITS` pairs are available."""
     ids = np.unique(owners)
-    eps = 1e-20
-    if ids.size < 4:
+    eps = SSE_EPS
+    if ids.size < MIN_PAIRS_AS_UNITS:
         return np.log((base_su + eps) / (su + eps))
     return np.array([np.log((base_su[owners == i].sum() + eps) / (su[owners == i].sum() + eps)) for i in ids])
 
@@ -379,19 +389,32 @@ def flat_lr_noise(samples: list[Sample], cfg: DetectConfig, base: BaseModel | No
             d = d - (pl - pr)
             use = s.score[:, 0] & b.valid[:, 0]
         energy = F.avg_pool2d(F.pad(energy, (k // 2,) * 4, mode="replicate"), k, stride=1)
-        v = _high_pass(d) ** 2 / (16.0 / 9.0)
+        v = _high_pass(d) ** 2 / HIGH_PASS_NOISE_GAIN
         inten = (b.left + b.right) / 2
         use[:, :1] = use[:, -1:] = False  # the 3x3 mean needs neighbours
         use[:, :, :1] = use[:, :, -1:] = False
         for i, pid in enumerate(b.pair_ids):
             vi = use[i]
-            if int(vi.sum()) < 16:
+            if int(vi.sum()) < MIN_NOISE_PX_PER_IMAGE:
                 continue
             m = vi & (energy[i, 0] <= torch.quantile(energy[i, 0][vi], cfg.noise_flat_quantile))
             var_by_pair.setdefault(pid, []).append(v[i][:, m].reshape(-1))
             int_by_pair.setdefault(pid, []).append(inten[i][:, m].reshape(-1))
     ids = sorted(var_by_pair)
     return ([torch.cat(var_by_pair[p]).double().numpy() for p in ids], [torch.cat(int_by_pair[p]).double().numpy() for p in ids])
+
+
+MIN_NOISE_PX_PER_IMAGE = 16
+"""An image (or crop) adds noise samples only with at least this many usable pixels (px)."""
+HIGH_PASS_NOISE_GAIN = 16.0 / 9.0
+r"""E[h^2] / sigma^2 for the 3 x 3 high-pass h of L - R with independent noise of variance sigma^2 in each
+view: (8/9) per view, two views."""
+MIN_NOISE_SAMPLES = 256
+"""Fewest flat noise samples (pixel x channel values) over all pairs to measure noise at all."""
+MIN_PAIR_NOISE_SAMPLES = 32
+"""Fewest flat noise samples (pixel x channel values) for a pair's own variance ratio (a unit of the test)."""
+NOISE_INTENSITY_BINS = 8
+"""Intensity quantile bins through whose median variances the noise model line is fitted."""
 
 
 def _high_pass(x: Tensor) -> Tensor:
@@ -413,22 +436,23 @@ def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Detec
     Statistic: one-sided t of :math:`\ln \rho_i` (H1: more noise than nominal); effect size: the pooled
     excess variance :math:`\rho - 1` (0 for a nominal sensor; the ``noise`` effect at studio strength 1 is
     about 3). The noise model ``var = shot_var I + read_sigma^2`` is a least-squares line through the
-    medians of 8 intensity bins. Also reported: ``excess_fraction``, the share of the base model's residual
+    medians of :data:`NOISE_INTENSITY_BINS` intensity bins. Also reported: ``excess_fraction``, the share of the base model's residual
     MSE that the excess noise accounts for (used to rank noise against effects measured in MSE;
     ``base_mse``, the base model's MSE on the detection set, is measured here when not given).
     """
     var, inten = flat_lr_noise(fit + det, cfg, base)
-    if sum(v.size for v in var) < 256:
+    if sum(v.size for v in var) < MIN_NOISE_SAMPLES:
         return Finding("noise", 0.0, 1.0, 0.0, False, {}, "too few flat valid pixels to measure noise", None)
     nominal = [cfg.nominal_shot_var * np.maximum(i, 0) + cfg.nominal_read_sigma**2 for i in inten]
-    ratios = np.array([np.median(v / n) / MEDIAN_CHI2_1 for v, n in zip(var, nominal) if v.size >= 32])
+    ratios = np.array([np.median(v / n) / MEDIAN_CHI2_1 for v, n in zip(var, nominal) if v.size >= MIN_PAIR_NOISE_SAMPLES])
     t, p = one_sided_t(np.log(np.maximum(ratios, 1e-12)))
     v_all, i_all, n_all = np.concatenate(var), np.concatenate(inten), np.concatenate(nominal)
     rho = float(np.median(v_all / n_all) / MEDIAN_CHI2_1)
     effect = rho - 1.0
-    edges = np.quantile(i_all, np.linspace(0, 1, 9))
-    which = np.clip(np.searchsorted(edges, i_all, side="right") - 1, 0, 7)
-    rows = [(float(i_all[which == j].mean()), float(np.median(v_all[which == j]) / MEDIAN_CHI2_1)) for j in range(8) if np.any(which == j)]
+    nb = NOISE_INTENSITY_BINS
+    edges = np.quantile(i_all, np.linspace(0, 1, nb + 1))
+    which = np.clip(np.searchsorted(edges, i_all, side="right") - 1, 0, nb - 1)
+    rows = [(float(i_all[which == j].mean()), float(np.median(v_all[which == j]) / MEDIAN_CHI2_1)) for j in range(nb) if np.any(which == j)]
     A = np.array([[i, 1.0] for i, _ in rows])
     coef, *_ = np.linalg.lstsq(A, np.array([v for _, v in rows]), rcond=None)
     model = copy_base(base).with_component(Noise())

@@ -11,7 +11,7 @@ change that addresses it is multi-scale kernel prediction (``ModelConfig.multisc
 1. measures its masked error on the held-out split (test, else val) per |CoC| bin (before);
 2. extends the loaded network with multi-scale kernels, initialised so that its output equals the
    checkpoint's exactly (zero blend weights; checked and reported), and fine-tunes it on train crops for a
-   fixed number of steps (extended);
+   fixed number of steps (extended; :func:`neural_dp.train.finetune`, the training loop's own step);
 3. fine-tunes the unextended checkpoint with the same data, order, optimiser, loss mask and budget
    (control), so the gain is the structure's, not the extra training's;
 4. reports masked PSNR / SSIM / MAE (``neural_dp.metrics``) before / control / extended, per-|CoC|-bin PSNR of
@@ -20,18 +20,16 @@ change that addresses it is multi-scale kernel prediction (``ModelConfig.multisc
    ``neural_reach.json`` and the two fine-tuned checkpoints (``control.pt``, ``extended.pt``; both load with
    ``get_simulator("neural", checkpoint=...)``).
 
-Usage: ``python -m dp5k_diagnose.neural_reach DATASET CKPT OUT [--steps N] [--levels L] [--seed S] [--device D]``.
+Run it with ``dp5k diagnose DATASET --model neural:CKPT`` (``--neural-steps``); settings: :class:`NeuralReachConfig`.
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
-import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,16 +40,14 @@ from torch import Tensor
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import atomic_path, write_json_atomic
-from dp5k_common.progress import progress
 from neural_dp.checkpoint import save_checkpoint
-from neural_dp.data import CropSpec, DPPairDataset, collate_dp
-from neural_dp.losses import dp_loss
+from neural_dp.config import FinetuneConfig
 from neural_dp.model import extend_multiscale
-from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
-from neural_dp.train import loss_mask
+from neural_dp.simulators.neural import NeuralDPSimulator
+from neural_dp.train import NEW_PARAMETER_PREFIX, finetune
 
 from .data import Sample, full_samples, load_pairs
-from .gain import bootstrap_ci, gain_report, pair_metrics
+from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics
 
 BINS_PX: tuple[float, ...] = (0.0, 2.0, 4.0, 8.0, 16.0, 32.0, math.inf)
 """|CoC| bin edges in px (the last bin is open)."""
@@ -154,68 +150,6 @@ def _resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
-def finetune(sim: NeuralDPSimulator, dataset: str | Path, steps: int, *, seed: int = 0, lr: float = 5e-4,
-             crop_px: int = 96, batch_size: int = 4, border_px: int | None = None, grad_clip: float = 1.0,
-             grad_weight: float = 1.0, new_lr_mult: float = 1.0, device: torch.device | str = "cpu",
-             desc: str = "fine-tune") -> list[float]:
-    """Fine-tune a Neural DP Simulator in place on train crops for exactly ``steps`` Adam steps.
-
-    The crops and their order depend only on ``seed`` (and the dataset), so two calls with the same
-    arguments see identical batches: the control and the extension are trained on the same data.
-    Adam with cosine annealing from ``lr`` to 0, the training loss of Eq. 8 on the valid mask minus a
-    ``border_px`` frame (default: the network's kernel reach), global gradient clipping.
-
-    Args:
-        sim: the simulator to train (its ``net`` is updated in place, left in eval mode).
-        dataset: a format-v1 dataset with a non-empty train split.
-        steps: optimiser steps.
-        seed: data-order / crop / dropout seed.
-        lr: peak learning rate.
-        crop_px: side of the square random crops (0 = whole images).
-        batch_size: crops per step.
-        border_px: loss border in px.
-        grad_clip: global gradient norm clip (0 = off).
-        grad_weight: weight of the gradient terms of the loss.
-        new_lr_mult: learning-rate factor of the multi-scale head (the parameters the extension adds; they
-            start at zero blend and need to travel further than the trained ones). No effect on a
-            single-scale network.
-        device: where to train.
-        desc: progress-bar label.
-
-    Returns:
-        The loss of every step (length ``steps``).
-    """
-    device = torch.device(device)
-    ds = DPPairDataset(dataset, "train", CropSpec(crop_px, vflip=False), seed=seed, length=max(1, steps * batch_size))
-    order = np.random.default_rng(seed).permutation(len(ds))
-    border = sim.net.reach_px if border_px is None else int(border_px)
-    sim.to(device)
-    new = [p for n, p in sim.net.named_parameters() if n.startswith("scale_head.")]
-    old = [p for n, p in sim.net.named_parameters() if not n.startswith("scale_head.")]
-    groups = [{"params": old, "lr": lr}] + ([{"params": new, "lr": lr * new_lr_mult}] if new else [])
-    opt = torch.optim.Adam(groups, lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, steps), eta_min=0.0)
-    torch.manual_seed(seed)
-    sim.train()
-    losses: list[float] = []
-    for k in progress(range(steps), desc=desc, unit="step"):
-        idx = order[(k * batch_size) % len(ds) :][:batch_size]
-        batch = collate_dp([ds[int(i)] for i in idx]).to(device)
-        left, right = sim.net(batch.sharp, model_inputs(batch, sim.cfg.coc_scale_px))
-        loss = dp_loss(left, right, batch.left, batch.right, loss_mask(batch.valid, border), grad_weight)
-        if not torch.isfinite(loss):
-            raise BadInputError(f"fine-tuning loss is {float(loss)} at step {k} (lower lr?)", where="finetune")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(sim.net.parameters(), grad_clip)
-        opt.step()
-        sched.step()
-        losses.append(float(loss.detach()))
-    sim.eval()
-    return losses
-
-
 def _nan_to_none(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: _nan_to_none(v) for k, v in x.items()}
@@ -285,29 +219,160 @@ def plot_reach(res: dict[str, Any], path: Path) -> str:
     return path.name
 
 
-def diagnose_neural(dataset: str | Path, checkpoint: str | Path, out_dir: str | Path, *, steps: int = 150,
-                    seed: int = 0, device: str = "cpu", levels: int = 3, lr: float = 5e-5, crop_px: int = 96,
-                    batch_size: int = 4, new_lr_mult: float = 100.0, bins: Sequence[float] = BINS_PX,
-                    n_boot: int = 2000) -> dict[str, Any]:
+@dataclass(frozen=True)
+class NeuralReachConfig:
+    """Settings of :func:`diagnose_neural`.
+
+    Attributes:
+        finetune: how the extension and the control are fine-tuned (the same for both); its seed also seeds
+            the bootstrap.
+        levels: extra kernel scales of the extension (dilations 2, ..., 2**levels px).
+        bins_px: increasing |CoC| bin edges in px (the last bin is open).
+        n_boot: bootstrap resamples of the per-bin CIs.
+        device: "cpu", "cuda", "cuda:N" or "auto".
+    """
+
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    levels: int = 3
+    bins_px: tuple[float, ...] = BINS_PX
+    n_boot: int = 2000
+    device: str = "cpu"
+
+
+@dataclass
+class _Arm:
+    """One simulator of the study on the held-out samples: its errors per |CoC| bin and its metrics per pair."""
+
+    sim: NeuralDPSimulator
+    bins: BinErrors
+    metrics: PairMetrics
+
+
+def _measure(sim: NeuralDPSimulator, held: Sequence[Sample], bins: Sequence[float]) -> _Arm:
+    def predict(s: Sample) -> tuple[Tensor, Tensor]:
+        return sim(s.batch)
+
+    return _Arm(sim, bin_errors(predict, held, bins), pair_metrics(predict, held))
+
+
+def held_out_samples(reader: DatasetReader, device: torch.device) -> tuple[str, list[Sample]]:
+    """The held-out split (test, else val) as whole pairs: (split name, samples).
+
+    Raises:
+        BadInputError: neither split has a pair.
+    """
+    split = "test" if reader.ids("test") else "val"
+    ids = reader.ids(split)
+    if not ids:
+        raise BadInputError("no test or val pairs to hold out", where=reader.root / "dataset.json")
+    return split, full_samples(load_pairs(reader, ids), str(device))
+
+
+def load_single_scale(checkpoint: str | Path, device: torch.device) -> NeuralDPSimulator:
+    """The checkpoint's simulator in eval mode.
+
+    Raises:
+        BadInputError: the checkpoint already has multi-scale kernels (there is nothing to extend).
+    """
+    sim = NeuralDPSimulator.from_checkpoint(checkpoint, map_location=device).to(device)
+    if sim.cfg.multiscale_levels:
+        raise BadInputError("the checkpoint already has multi-scale kernels", where=checkpoint)
+    return sim.eval()
+
+
+def extend_exactly(before: NeuralDPSimulator, levels: int, held: Sequence[Sample], device: torch.device) -> tuple[NeuralDPSimulator, float]:
+    """The checkpoint with multi-scale kernels added (:func:`neural_dp.model.extend_multiscale`, zero blend
+    weights), and the largest |difference| of its views from the checkpoint's on the held-out samples (0 by
+    construction; reported, so that a gain is never an artefact of the initialisation)."""
+    net = extend_multiscale(copy.deepcopy(before.net), levels)
+    extended = NeuralDPSimulator(net.cfg, net).to(device).eval()
+    diff = 0.0
+    with torch.no_grad():
+        for s in held:
+            l0, r0 = before(s.batch)
+            l1, r1 = extended(s.batch)
+            diff = max(diff, float((l1 - l0).abs().max()), float((r1 - r0).abs().max()))
+    return extended, diff
+
+
+def _timed_finetune(sim: NeuralDPSimulator, dataset: str | Path, cfg: FinetuneConfig, device: torch.device,
+                    desc: str) -> tuple[list[float], float]:
+    t0 = time.perf_counter()
+    losses = finetune(sim, dataset, cfg, device, desc)
+    return losses, time.perf_counter() - t0
+
+
+def per_bin_table(before: BinErrors, control: BinErrors, extended: BinErrors, bins: Sequence[float], n_boot: int,
+                  seed: int) -> list[dict[str, Any]]:
+    """Per |CoC| bin: pixels, pairs, pooled RMSE / MAE and unexplained fraction and mean per-pair PSNR of the
+    three simulators, and the PSNR gain of extended over control (with its bootstrap CI over pairs) and over
+    the checkpoint. Non-finite values stay NaN (written as null)."""
+    edges = list(bins)
+    mse = [a.pooled_mse() for a in (before, control, extended)]
+    mae = [a.pooled_mae() for a in (before, control, extended)]
+    un = [a.unexplained() for a in (before, control, extended)]
+    rows = []
+    for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        g = extended.psnr[:, j] - control.psnr[:, j]
+        gb = extended.psnr[:, j] - before.psnr[:, j]
+        ok = np.isfinite(g)
+        rmse = [math.sqrt(m[j]) if np.isfinite(m[j]) else None for m in mse]
+        psnr = [float(np.nanmean(a.psnr[:, j])) if ok.any() else None for a in (before, control, extended)]
+        rows.append({
+            "bin_px": [lo, hi if math.isfinite(hi) else None],
+            "pixels": int(round(before.count[:, j].sum() / 6.0)),
+            "n_pairs": int(ok.sum()),
+            "rmse_before": rmse[0], "rmse_control": rmse[1], "rmse_extended": rmse[2],
+            "mae_before": mae[0][j], "mae_control": mae[1][j], "mae_extended": mae[2][j],
+            "unexplained_before": un[0][j], "unexplained_control": un[1][j], "unexplained_extended": un[2][j],
+            "psnr_before": psnr[0], "psnr_control": psnr[1], "psnr_extended": psnr[2],
+            "gain_db": float(g[ok].mean()) if ok.any() else None,
+            "gain_ci95": list(bootstrap_ci(g[ok], n_boot, seed=seed)) if ok.any() else None,
+            "gain_vs_before_db": float(gb[ok].mean()) if ok.any() else None,
+        })
+    return rows
+
+
+def error_growth(before: BinErrors) -> dict[str, Any]:
+    """How the checkpoint's error grows with |CoC|: pooled MSE per bin and its Spearman rho against the bin,
+    ``grows`` (rho > 0 and the last non-empty bin's MSE above the first's), and the same rho for the
+    unexplained fraction (SSE over the no-blur reference's SSE, independent of how much texture a bin holds)."""
+    mse, un = before.pooled_mse(), before.unexplained()
+    nonempty = np.flatnonzero(np.isfinite(mse))
+    rho = _spearman(np.arange(len(mse), dtype=float), mse)
+    grows = bool(nonempty.size >= 2 and rho > 0 and mse[nonempty[-1]] > mse[nonempty[0]])
+    return {"pooled_mse_before": list(mse), "spearman_rho": rho, "grows": grows,
+            "unexplained_before": list(un), "unexplained_spearman_rho": _spearman(np.arange(len(un), dtype=float), un)}
+
+
+def save_finetuned(out: Path, arms: dict[str, NeuralDPSimulator], checkpoint: str | Path, steps: int) -> dict[str, str]:
+    """``out/<name>.pt`` for each fine-tuned simulator (loadable with ``get_simulator("neural", checkpoint=...)``)."""
+    paths = {name: str(out / f"{name}.pt") for name in arms}
+    for name, sim in arms.items():
+        save_checkpoint(paths[name], {"model": sim.net.state_dict(), "model_config": asdict(sim.cfg),
+                                      "source_checkpoint": str(checkpoint), "finetune_steps": int(steps)})
+    return paths
+
+
+def _means(pm: PairMetrics) -> dict[str, float]:
+    return {"psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)), "mae": float(np.nanmean(pm.mae))}
+
+
+def diagnose_neural(dataset: str | Path, checkpoint: str | Path, out_dir: str | Path,
+                    cfg: NeuralReachConfig = NeuralReachConfig()) -> dict[str, Any]:
     """Diagnose a Neural DP checkpoint's reach, extend it with multi-scale kernels and measure the gain.
+
+    Steps: the held-out samples (:func:`held_out_samples`); the checkpoint's errors per |CoC| bin; the exact
+    extension (:func:`extend_exactly`); the extension and the unextended control fine-tuned with the same
+    settings and loss mask (:func:`neural_dp.train.finetune`); their errors; the per-bin table
+    (:func:`per_bin_table`), the checkpoint's :func:`error_growth`, the fine-tuned checkpoints
+    (:func:`save_finetuned`), the figure and ``neural_reach.json``.
 
     Args:
         dataset: a format-v1 dataset (train split for fine-tuning; test, else val, held out).
         checkpoint: a Neural DP checkpoint written by ``dp5k train`` (single-scale).
         out_dir: where ``neural_reach.json``, ``neural_reach.png``, ``control.pt`` and ``extended.pt`` go.
-        steps: fine-tuning steps, the same for the control and the extension.
-        seed: crops, data order, dropout and bootstrap seed.
-        device: "cpu", "cuda", "cuda:N" or "auto".
-        levels: extra kernel scales (dilations 2, ..., 2**levels px).
-        lr: peak fine-tuning learning rate of the checkpoint's own weights (cosine to 0). Low (5e-5), so
-            that fine-tuning does not undo a well-trained checkpoint: at 5e-4 the control lost 0.8-1.0 dB
-            in 150 steps (docs/diagnose.md, Limits).
-        crop_px: fine-tuning crop side in px.
-        batch_size: fine-tuning crops per step.
-        new_lr_mult: learning-rate factor of the added multi-scale head (see :func:`finetune`); 100, i.e.
-            the new, zero-initialised blend weights learn at 5e-3.
-        bins: |CoC| bin edges in px.
-        n_boot: bootstrap resamples.
+        cfg: the study's settings (:class:`NeuralReachConfig`).
 
     Returns:
         A JSON-able dict (also written to ``out_dir/neural_reach.json``) with keys ``model``, ``dataset``,
@@ -316,129 +381,51 @@ def diagnose_neural(dataset: str | Path, checkpoint: str | Path, out_dir: str | 
         before fine-tuning, 0 by construction), ``finetune`` (steps, lr, crop, batch, seed, per-step losses
         and seconds of both runs), ``metrics`` (``before`` / ``control`` / ``extended``: mean masked PSNR,
         SSIM, MAE over pairs), ``gain`` (issue-7 shape: checkpoint before, extended after, PSNR gain CI),
-        ``gain_vs_control`` (same shape, control before), ``bins_px``, ``per_bin`` (per |CoC| bin: pixels,
-        pairs, pooled RMSE / MAE, unexplained fraction and mean per-pair PSNR of the three models, ``gain_db`` and ``gain_ci95`` of
-        extended over control, ``gain_vs_before_db``), ``error_growth`` (of the checkpoint: pooled MSE per
-        bin, Spearman rho of MSE against bin, ``grows``: rho > 0 and last non-empty bin's MSE above the
-        first's; the same for the unexplained fraction, SSE over the no-blur reference's SSE, which
-        does not depend on how much texture a bin happens to hold), ``figures`` and ``checkpoints``. NaN values are written as null.
+        ``gain_vs_control`` (same shape, control before), ``bins_px``, ``per_bin`` (:func:`per_bin_table`),
+        ``error_growth`` (:func:`error_growth`), ``figures`` and ``checkpoints``. NaN values are written as null.
 
     Raises:
         BadInputError: unreadable checkpoint, a multi-scale checkpoint, or no held-out pairs.
-        DatasetFormatError: empty train split.
+        EmptySplitError: empty train split.
     """
     t_all = time.perf_counter()
-    dev = _resolve_device(device)
+    dev = _resolve_device(cfg.device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    reader = DatasetReader(dataset)
-    split = "test" if reader.ids("test") else "val"
-    held_ids = reader.ids(split)
-    if not held_ids:
-        raise BadInputError("no test or val pairs to hold out", where=reader.root / "dataset.json")
-    held = full_samples(load_pairs(reader, held_ids), str(dev))
+    split, held = held_out_samples(DatasetReader(dataset), dev)
+    bins, ft = cfg.bins_px, cfg.finetune
 
-    before = NeuralDPSimulator.from_checkpoint(checkpoint, map_location=dev).to(dev)
-    if before.cfg.multiscale_levels:
-        raise BadInputError("the checkpoint already has multi-scale kernels", where=checkpoint)
-    before.eval()
+    before = _measure(load_single_scale(checkpoint, dev), held, bins)
+    extended_sim, init_diff = extend_exactly(before.sim, cfg.levels, held, dev)
+    ft = replace(ft, border_px=extended_sim.net.reach_px if ft.border_px is None else ft.border_px)  # one loss mask for both
+    loss_ext, t_ext = _timed_finetune(extended_sim, dataset, ft, dev, "fine-tune extended")
+    control_sim = load_single_scale(checkpoint, dev)
+    loss_ctl, t_ctl = _timed_finetune(control_sim, dataset, ft, dev, "fine-tune control")
+    control, extended = _measure(control_sim, held, bins), _measure(extended_sim, held, bins)
 
-    def predictor(sim: NeuralDPSimulator) -> Predict:
-        return lambda s: sim(s.batch)
-
-    # (a) the checkpoint as it is
-    err_before = bin_errors(predictor(before), held, bins)
-    pm_before = pair_metrics(predictor(before), held)
-
-    # (b) the extension, exactly equal to the checkpoint at init
-    ext_net = extend_multiscale(copy.deepcopy(before.net), levels)
-    extended = NeuralDPSimulator(ext_net.cfg, ext_net).to(dev).eval()
-    with torch.no_grad():
-        diff = 0.0
-        for s in held:
-            l0, r0 = before(s.batch)
-            l1, r1 = extended(s.batch)
-            diff = max(diff, float((l1 - l0).abs().max()), float((r1 - r0).abs().max()))
-    border = ext_net.reach_px  # one loss mask for both runs
-    ft = {"lr": lr, "new_lr_mult": new_lr_mult, "crop_px": crop_px, "batch_size": batch_size, "seed": seed,
-          "border_px": border}
-    t0 = time.perf_counter()
-    loss_ext = finetune(extended, dataset, steps, seed=seed, lr=lr, crop_px=crop_px, batch_size=batch_size,
-                        border_px=border, new_lr_mult=new_lr_mult, device=dev, desc="fine-tune extended")
-    t_ext = time.perf_counter() - t0
-
-    # (c) the control: the unextended checkpoint, same data, budget and mask
-    control = NeuralDPSimulator.from_checkpoint(checkpoint, map_location=dev).to(dev)
-    t0 = time.perf_counter()
-    loss_ctl = finetune(control, dataset, steps, seed=seed, lr=lr, crop_px=crop_px, batch_size=batch_size,
-                        border_px=border, device=dev, desc="fine-tune control")
-    t_ctl = time.perf_counter() - t0
-
-    # (d) metrics
-    err_ctl = bin_errors(predictor(control), held, bins)
-    err_ext = bin_errors(predictor(extended), held, bins)
-    pm_ctl = pair_metrics(predictor(control), held)
-    pm_ext = pair_metrics(predictor(extended), held)
-
-    edges = list(bins)
-    per_bin = []
-    mse_b, mse_c, mse_e = err_before.pooled_mse(), err_ctl.pooled_mse(), err_ext.pooled_mse()
-    mae_b, mae_c, mae_e = err_before.pooled_mae(), err_ctl.pooled_mae(), err_ext.pooled_mae()
-    un_b, un_c, un_e = err_before.unexplained(), err_ctl.unexplained(), err_ext.unexplained()
-    for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        g = err_ext.psnr[:, j] - err_ctl.psnr[:, j]
-        gb = err_ext.psnr[:, j] - err_before.psnr[:, j]
-        ok = np.isfinite(g)
-        per_bin.append({
-            "bin_px": [lo, hi if math.isfinite(hi) else None],
-            "pixels": int(round(err_before.count[:, j].sum() / 6.0)),
-            "n_pairs": int(ok.sum()),
-            "rmse_before": math.sqrt(mse_b[j]) if np.isfinite(mse_b[j]) else None,
-            "rmse_control": math.sqrt(mse_c[j]) if np.isfinite(mse_c[j]) else None,
-            "rmse_extended": math.sqrt(mse_e[j]) if np.isfinite(mse_e[j]) else None,
-            "mae_before": mae_b[j], "mae_control": mae_c[j], "mae_extended": mae_e[j],
-            "unexplained_before": un_b[j], "unexplained_control": un_c[j], "unexplained_extended": un_e[j],
-            "psnr_before": float(np.nanmean(err_before.psnr[:, j])) if ok.any() else None,
-            "psnr_control": float(np.nanmean(err_ctl.psnr[:, j])) if ok.any() else None,
-            "psnr_extended": float(np.nanmean(err_ext.psnr[:, j])) if ok.any() else None,
-            "gain_db": float(g[ok].mean()) if ok.any() else None,
-            "gain_ci95": list(bootstrap_ci(g[ok], n_boot, seed=seed)) if ok.any() else None,
-            "gain_vs_before_db": float(gb[ok].mean()) if ok.any() else None,
-        })
-    nonempty = np.flatnonzero(np.isfinite(mse_b))
-    rho = _spearman(np.arange(len(mse_b), dtype=float), mse_b)
-    grows = bool(nonempty.size >= 2 and rho > 0 and mse_b[nonempty[-1]] > mse_b[nonempty[0]])
-    rho_un = _spearman(np.arange(len(un_b), dtype=float), un_b)
-
-    def means(pm: Any) -> dict[str, float]:
-        return {"psnr": float(np.nanmean(pm.psnr)), "ssim": float(np.nanmean(pm.ssim)), "mae": float(np.nanmean(pm.mae))}
-
-    n_extra = sum(p.numel() for n, p in ext_net.named_parameters() if n.startswith("scale_head."))
-    paths = {"control": str(out / "control.pt"), "extended": str(out / "extended.pt")}
-    for name, sim in (("control", control), ("extended", extended)):
-        save_checkpoint(paths[name], {"model": sim.net.state_dict(), "model_config": asdict(sim.cfg),
-                                      "source_checkpoint": str(checkpoint), "finetune_steps": int(steps)})
+    net = extended_sim.net
     res: dict[str, Any] = {
         "model": f"neural:{checkpoint}",
         "dataset": str(dataset),
         "checkpoint": str(checkpoint),
         "split": split,
-        "n_pairs": len(pm_before.pair_ids),
+        "n_pairs": len(before.metrics.pair_ids),
         "extension": {
-            "kind": "multiscale_kernels", "multiscale_levels": int(levels), "dilations_px": list(ext_net.dilations),
-            "kernel_size": int(ext_net.cfg.kernel_size), "reach_px_before": int(before.net.reach_px),
-            "reach_px_after": int(ext_net.reach_px), "extra_parameters": int(n_extra), "init_max_abs_diff": diff,
+            "kind": "multiscale_kernels", "multiscale_levels": int(cfg.levels), "dilations_px": list(net.dilations),
+            "kernel_size": int(net.cfg.kernel_size), "reach_px_before": int(before.sim.net.reach_px),
+            "reach_px_after": int(net.reach_px), "init_max_abs_diff": init_diff,
+            "extra_parameters": int(sum(p.numel() for n, p in net.named_parameters() if n.startswith(NEW_PARAMETER_PREFIX))),
         },
-        "finetune": {**ft, "steps": int(steps), "loss_control": loss_ctl, "loss_extended": loss_ext,
-                     "seconds_control": t_ctl, "seconds_extended": t_ext},
-        "metrics": {"before": means(pm_before), "control": means(pm_ctl), "extended": means(pm_ext)},
-        "gain": gain_report(pm_before, pm_ext, split, n_boot, seed),
-        "gain_vs_control": gain_report(pm_ctl, pm_ext, split, n_boot, seed),
-        "bins_px": [[lo, hi if math.isfinite(hi) else None] for lo, hi in zip(edges[:-1], edges[1:])],
-        "per_bin": per_bin,
-        "error_growth": {"pooled_mse_before": list(mse_b), "spearman_rho": rho, "grows": grows,
-                         "unexplained_before": list(un_b), "unexplained_spearman_rho": rho_un},
-        "checkpoints": paths,
+        "finetune": {"lr": ft.lr, "new_lr_mult": ft.new_lr_mult, "crop_px": ft.crop_px, "batch_size": ft.batch_size,
+                     "seed": ft.seed, "border_px": ft.border_px, "steps": int(ft.steps), "loss_control": loss_ctl,
+                     "loss_extended": loss_ext, "seconds_control": t_ctl, "seconds_extended": t_ext},
+        "metrics": {"before": _means(before.metrics), "control": _means(control.metrics), "extended": _means(extended.metrics)},
+        "gain": gain_report(before.metrics, extended.metrics, split, cfg.n_boot, ft.seed),
+        "gain_vs_control": gain_report(control.metrics, extended.metrics, split, cfg.n_boot, ft.seed),
+        "bins_px": [[lo, hi if math.isfinite(hi) else None] for lo, hi in zip(bins[:-1], bins[1:])],
+        "per_bin": per_bin_table(before.bins, control.bins, extended.bins, bins, cfg.n_boot, ft.seed),
+        "error_growth": error_growth(before.bins),
+        "checkpoints": save_finetuned(out, {"control": control_sim, "extended": extended_sim}, checkpoint, ft.steps),
     }
     res = _nan_to_none(res)
     res["figures"] = [plot_reach(res, out / "neural_reach.png")]
@@ -469,25 +456,3 @@ def format_table(res: dict[str, Any]) -> str:
                  f"{m['extended']['psnr']:.2f} / {m['extended']['ssim']:.4f} / {m['extended']['mae']:.4f} | "
                  f"{g['psnr_after'] - g['psnr_before']:+.2f} [{g['psnr_gain_ci95'][0]:+.2f}, {g['psnr_gain_ci95'][1]:+.2f}] |")
     return "\n".join(lines)
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset")
-    ap.add_argument("checkpoint")
-    ap.add_argument("out")
-    ap.add_argument("--steps", type=int, default=150)
-    ap.add_argument("--levels", type=int, default=3)
-    ap.add_argument("--lr", type=float, default=5e-5)
-    ap.add_argument("--new-lr-mult", type=float, default=100.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default="cpu")
-    a = ap.parse_args()
-    res = diagnose_neural(a.dataset, a.checkpoint, a.out, steps=a.steps, seed=a.seed, device=a.device,
-                          levels=a.levels, lr=a.lr, new_lr_mult=a.new_lr_mult)
-    print(format_table(res))
-    print(json.dumps({k: res[k] for k in ("extension", "metrics", "error_growth")}, indent=1))
-
-
-if __name__ == "__main__":
-    main()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,8 @@ from neural_dp.simulators.base import BaseModel
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
 from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, masked_mse, name_cause, test_effects
 from .gain import gain_report, pair_metrics_by_mask
+from .model_spec import ModelSpec
+from .neural_reach import NeuralReachConfig
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +37,8 @@ class DiagnoseConfig:
         seed: seeds crop positions and the bootstrap.
         detect: the detectors' statistical settings.
         effects: the effects to test (default: the whole vocabulary).
-        neural_steps: fine-tuning steps of the Neural DP extension study (``--model neural:CKPT``).
+        neural: the Neural DP extension study's settings (``--model neural:CKPT``); its fine-tuning seed is
+            ``seed``.
         sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
             None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
     """
@@ -48,7 +51,7 @@ class DiagnoseConfig:
     seed: int = 0
     detect: DetectConfig = field(default_factory=DetectConfig)
     effects: tuple[str, ...] = EFFECT_NAMES
-    neural_steps: int = 150
+    neural: NeuralReachConfig = field(default_factory=NeuralReachConfig)
     sharp_f_number: float | None = None
 
 
@@ -219,16 +222,16 @@ def analyse(predict, samples: list[Sample], with_psfs: bool = True) -> dict[str,
     return out
 
 
-def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | None = None, cfg: DiagnoseConfig | None = None) -> dict[str, Any]:
+def run_diagnose(dataset: str | Path, model: ModelSpec = ModelSpec(), out: str | Path | None = None,
+                 cfg: DiagnoseConfig | None = None) -> dict[str, Any]:
     """The whole ``dp5k diagnose``: returns the report.json object and writes DIR/report.{json,md} when ``out``.
 
-    ``model`` is ``base`` or a registry name (``disk``, ``butterworth``, ``raytrace``, ``neural:CKPT``); the
-    effect vocabulary is tested on the physical base model in every case (its components are what can be
+    ``model`` is the base model, a peer or a Neural DP checkpoint (:class:`ModelSpec`, parsed from ``--model``);
+    the effect vocabulary is tested on the physical base model in every case (its components are what can be
     named and added); for a peer, its own residuals are analysed and its metrics reported beside the base's.
     """
     cfg = cfg or DiagnoseConfig()
-    if model.startswith("neural:") and not Path(model.split(":", 1)[1]).is_file():
-        raise BadInputError("Neural DP checkpoint not found", where=model.split(":", 1)[1])
+    model.check_files()
     diag = diagnose_base(dataset, cfg)
     result = diag.to_json()
     reader = DatasetReader(dataset)
@@ -239,16 +242,16 @@ def run_diagnose(dataset: str | Path, model: str = "base", out: str | Path | Non
     }
     if diag.extended is not diag.base:
         analysis["after"] = analyse(lambda s: diag.extended.render(s.batch, s.field), held)
-    if model != "base":
-        peer = load_peer(model)
+    if not model.is_base:
+        peer = model.load_peer()
         by_mask = {m: {k: float(np.nanmean(getattr(pm, k))) for k in ("psnr", "ssim", "mae")}
                    for m, pm in pair_metrics_by_mask(lambda s: peer(s.batch), held).items()}
-        result["model"] = model
-        result["peer"] = {"name": model, "mask": "predictable", **by_mask["predictable"], "all_valid": by_mask["valid"],
+        result["model"] = str(model)
+        result["peer"] = {"name": str(model), "mask": "predictable", **by_mask["predictable"], "all_valid": by_mask["valid"],
                           "note": "effects are named and added on the physical base model; the peer's own errors are in analysis.peer"}
         analysis["peer"] = analyse(lambda s: peer(s.batch), held, with_psfs=False)
-    if model.startswith("neural:"):
-        result["neural_extension"] = extend_neural(dataset, model.split(":", 1)[1], out, cfg)
+    if model.is_neural:
+        result["neural_extension"] = extend_neural(dataset, model.checkpoint, out, cfg)
     if out is not None:
         from .report import write_report
 
@@ -266,18 +269,11 @@ def extend_neural(dataset: str | Path, checkpoint: str | Path, out: str | Path |
     from .neural_reach import diagnose_neural
 
     keys = ("extension", "metrics", "gain", "gain_vs_control", "bins_px", "per_bin", "error_growth", "figures", "split", "n_pairs")
+    study = replace(cfg.neural, finetune=replace(cfg.neural.finetune, seed=cfg.seed))
     with tempfile.TemporaryDirectory(prefix="dp5k-neural-") if out is None else nullcontext(Path(out) / "neural") as where:
-        res = diagnose_neural(dataset, checkpoint, where, steps=cfg.neural_steps, seed=cfg.seed)
+        res = diagnose_neural(dataset, checkpoint, where, study)
     kept = {k: res[k] for k in keys if k in res}
     if out is not None:  # figure paths relative to the report folder
         kept["figures"] = [f"neural/{f}" for f in res.get("figures", [])]
     return kept
 
-
-def load_peer(name: str):
-    """A peer simulator from the registry (``neural:CKPT`` loads a checkpoint)."""
-    from neural_dp.simulators.registry import get_simulator
-
-    if name.startswith("neural:"):
-        return get_simulator("neural", checkpoint=name.split(":", 1)[1])
-    return get_simulator(name)

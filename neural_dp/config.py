@@ -66,6 +66,32 @@ class OptimConfig:
 
 
 @dataclass(frozen=True)
+class FinetuneConfig:
+    """Fine-tuning an existing simulator for exactly ``steps`` Adam steps on train crops
+    (:func:`neural_dp.train.finetune`; ``dp5k diagnose --model neural:CKPT`` fine-tunes its structural extension
+    and an equally fine-tuned control with it). The step itself is :func:`neural_dp.train.train_step`, the one
+    that ``dp5k train`` runs; the loss and clipping settings are :class:`OptimConfig`'s."""
+
+    steps: int = 150
+    lr: float = 5e-5
+    """Peak learning rate of the simulator's own (trained) weights, cosine-annealed to 0. Low, so that
+    fine-tuning does not undo a well-trained checkpoint: at 5e-4 a control lost 0.8-1.0 dB in 150 steps
+    (docs/diagnose.md, Limits)."""
+    new_lr_mult: float = 100.0
+    """Learning-rate factor of parameters a structural extension adds (``scale_head.*``: they start at zero
+    blend and must travel further than the trained ones); no effect on a network without them."""
+    crop_px: int = 96
+    """Side of the square random crops (0 = whole images)."""
+    batch_size: int = 4
+    seed: int = 0
+    """Seeds crops, their order and dropout: two runs with the same settings see identical batches."""
+    border_px: int | None = None
+    """Loss border (px) cut from the valid mask; None = the network's kernel reach."""
+    grad_weight: float = OptimConfig.grad_weight
+    grad_clip: float = OptimConfig.grad_clip
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run depends on."""
 

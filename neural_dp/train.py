@@ -11,6 +11,9 @@ into ``out_dir``:
 
 Running the same command again resumes from ``last.pt`` (epoch granularity; the data and dropout of
 every epoch are seeded by ``(seed, epoch, rank)``, so a resumed run reproduces an uninterrupted one).
+
+Every optimiser step, in training and in :func:`finetune` (an existing simulator trained for a fixed number of
+steps, without epochs or checkpoints, :class:`~neural_dp.config.FinetuneConfig`), is :func:`train_step`.
 """
 
 from __future__ import annotations
@@ -33,8 +36,9 @@ from dp5k_common.io import write_json_atomic
 from dp5k_common.progress import progress
 
 from . import distributed as D
+from .batch import DPBatch
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import TrainConfig
+from .config import FinetuneConfig, TrainConfig
 from .data import CropSpec, DPPairDataset, collate_dp
 from .losses import dp_loss
 from .metrics import view_metrics
@@ -103,6 +107,86 @@ def validate(sim: NeuralDPSimulator, ds: DPPairDataset, info: D.DistInfo, max_pa
     sim.train(was_training)
     count = max(float(acc[3]), 1.0)
     return {"ssim": float(acc[0]) / count, "psnr": float(acc[1]) / count, "mae": float(acc[2]) / count}
+
+
+def train_step(net: torch.nn.Module, module: torch.nn.Module, batch: DPBatch, opt: torch.optim.Optimizer,
+               sched: torch.optim.lr_scheduler.LRScheduler, *, coc_scale_px: float, border_px: int, grad_weight: float,
+               grad_clip: float, amp: bool = False, step: int = 0, where: str = "train") -> torch.Tensor:
+    """One optimiser step of the Neural DP Simulator: forward, the loss of Eq. (8) on the valid mask minus a
+    ``border_px`` frame, backward, global gradient clipping, Adam and the schedule. ``dp5k train`` and
+    :func:`finetune` both run it.
+
+    Args:
+        net: what runs the forward pass (the network, or its DistributedDataParallel wrapper).
+        module: the network itself (its parameters are clipped).
+        batch: a training batch on the network's device.
+        coc_scale_px: the model's CoC input scale (``ModelConfig.coc_scale_px``).
+        amp: bfloat16 autocast (CUDA only).
+        step: the step's index (for the error message).
+
+    Returns:
+        The loss (detached scalar).
+
+    Raises:
+        StageError: the loss is not finite.
+    """
+    inputs = model_inputs(batch, coc_scale_px)
+    with torch.autocast(device_type=batch.sharp.device.type, dtype=torch.bfloat16, enabled=amp):
+        left, right = net(batch.sharp, inputs)
+    loss = dp_loss(left.float(), right.float(), batch.left, batch.right, loss_mask(batch.valid, border_px), grad_weight)
+    if not torch.isfinite(loss):
+        raise StageError(f"loss is {float(loss)} at step {step} (lower the learning rate?)", where=where)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(module.parameters(), grad_clip)
+    opt.step()
+    sched.step()
+    return loss.detach()
+
+
+NEW_PARAMETER_PREFIX = "scale_head."
+"""Parameters a structural extension adds to a trained network (:func:`neural_dp.model.extend_multiscale`);
+:func:`finetune` trains them at ``FinetuneConfig.new_lr_mult`` times the rate."""
+
+
+def finetune(sim: NeuralDPSimulator, dataset: str | os.PathLike[str], cfg: FinetuneConfig, device: torch.device | str = "cpu",
+             desc: str = "fine-tune") -> list[float]:
+    """Fine-tune a simulator in place on ``dataset``'s train crops for exactly ``cfg.steps`` steps of
+    :func:`train_step`, with no epochs, validation or checkpoints.
+
+    The crops and their order depend only on ``cfg.seed`` (and the dataset), so two calls with the same settings
+    see identical batches (a control and an extension are trained on the same data). Adam with cosine
+    annealing from ``cfg.lr`` to 0; parameters named ``scale_head.*`` at ``cfg.new_lr_mult`` times that.
+
+    Returns:
+        The loss of every step (length ``cfg.steps``); ``sim`` is left in eval mode.
+
+    Raises:
+        EmptySplitError: the train split is empty.
+        StageError: the loss became NaN.
+    """
+    device = torch.device(device)
+    ds = DPPairDataset(dataset, "train", CropSpec(cfg.crop_px, vflip=False), seed=cfg.seed, length=max(1, cfg.steps * cfg.batch_size))
+    order = np.random.default_rng(cfg.seed).permutation(len(ds))
+    border = sim.net.reach_px if cfg.border_px is None else int(cfg.border_px)
+    sim.to(device)
+    new = [p for n, p in sim.net.named_parameters() if n.startswith(NEW_PARAMETER_PREFIX)]
+    old = [p for n, p in sim.net.named_parameters() if not n.startswith(NEW_PARAMETER_PREFIX)]
+    groups = [{"params": old, "lr": cfg.lr}] + ([{"params": new, "lr": cfg.lr * cfg.new_lr_mult}] if new else [])
+    opt = torch.optim.Adam(groups, lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.steps), eta_min=0.0)
+    torch.manual_seed(cfg.seed)
+    sim.train()
+    losses: list[float] = []
+    for k in progress(range(cfg.steps), desc=desc, unit="step"):
+        idx = order[(k * cfg.batch_size) % len(ds) :][: cfg.batch_size]
+        batch = collate_dp([ds[int(i)] for i in idx]).to(device)
+        loss = train_step(sim.net, sim.net, batch, opt, sched, coc_scale_px=sim.cfg.coc_scale_px, border_px=border,
+                          grad_weight=cfg.grad_weight, grad_clip=cfg.grad_clip, step=k, where="fine-tune")
+        losses.append(float(loss))
+    sim.eval()
+    return losses
 
 
 def _seed_all(seed: int) -> None:
@@ -211,19 +295,8 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
             samples = 0
             for batch in loader:
                 batch = batch.to(device)
-                inputs = model_inputs(batch, cfg.model.coc_scale_px)
-                with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=use_amp):
-                    left, right = net(batch.sharp, inputs)
-                mask = loss_mask(batch.valid, border)
-                loss = dp_loss(left.float(), right.float(), batch.left, batch.right, mask, cfg.optim.grad_weight)
-                if not torch.isfinite(loss):
-                    raise StageError(f"loss is {float(loss)} at step {step} (lower --lr?)", where="train")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.optim.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(sim.net.parameters(), cfg.optim.grad_clip)
-                opt.step()
-                sched.step()
+                loss = train_step(net, sim.net, batch, opt, sched, coc_scale_px=cfg.model.coc_scale_px, border_px=border,
+                                  grad_weight=cfg.optim.grad_weight, grad_clip=cfg.optim.grad_clip, amp=use_amp, step=step)
                 step += 1
                 samples += batch.sharp.shape[0]
                 loss_sum += torch.tensor([float(loss.detach()) * batch.sharp.shape[0], batch.sharp.shape[0]],

@@ -51,3 +51,19 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
     assert "Cause: `lr_gain_imbalance`" in md
     for fig in rep["figures"].values():
         assert (out / fig).is_file() and (out / fig).stat().st_size > 1000
+
+
+def test_model_names_are_parsed_once_into_a_typed_spec(tmp_path: Path) -> None:
+    from dp5k_common.errors import BadInputError
+    from dp5k_diagnose.model_spec import ModelSpec
+
+    assert ModelSpec.parse("base") == ModelSpec() and ModelSpec().is_base
+    assert ModelSpec.parse("butterworth").kind == "butterworth"
+    spec = ModelSpec.parse(f"neural:{tmp_path / 'a.pt'}")
+    assert spec.is_neural and spec.checkpoint == tmp_path / "a.pt" and str(spec) == f"neural:{tmp_path / 'a.pt'}"
+    assert "/" not in spec.folder_name() and ":" not in spec.folder_name()
+    for bad in ("neural", "neural:", "Base", "disk:x"):
+        with pytest.raises(BadInputError):
+            ModelSpec.parse(bad)
+    with pytest.raises(BadInputError, match="checkpoint not found"):
+        spec.check_files()

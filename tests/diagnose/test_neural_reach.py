@@ -11,8 +11,9 @@ import torch
 
 from dp5k_studio.dataset import make_dataset
 from dp5k_common.dataset import DatasetReader
-from dp5k_diagnose.neural_reach import diagnose_neural, format_table
-from neural_dp.config import DataConfig, OptimConfig, TrainConfig
+from dp5k_diagnose.model_spec import ModelSpec
+from dp5k_diagnose.neural_reach import NeuralReachConfig, diagnose_neural, format_table
+from neural_dp.config import DataConfig, FinetuneConfig, OptimConfig, TrainConfig
 from neural_dp.model import ModelConfig
 from neural_dp.simulators.registry import get_simulator
 from neural_dp.train import train
@@ -37,7 +38,8 @@ def test_diagnose_neural_extends_exactly_and_reports_gain_per_coc_bin(trained: t
     coc = max(float(abs(r.load(p).coc_px[r.load(p).valid]).max()) for p in r.ids("test"))
     assert coc > 8.0  # the held-out pairs reach past the dilation-2 scale
 
-    res = diagnose_neural(ds, ckpt, tmp_path / "out", steps=4, seed=0, levels=2, crop_px=32, batch_size=2, n_boot=200)
+    study = NeuralReachConfig(finetune=FinetuneConfig(steps=4, seed=0, crop_px=32, batch_size=2), levels=2, n_boot=200)
+    res = diagnose_neural(ds, ckpt, tmp_path / "out", study)
     json.dumps(res, allow_nan=False)  # JSON-able, NaN written as null
     assert json.loads((tmp_path / "out" / "neural_reach.json").read_text())["n_pairs"] == res["n_pairs"] == 2
     assert (tmp_path / "out" / "neural_reach.png").stat().st_size > 0
@@ -80,7 +82,8 @@ def test_cli_diagnose_neural_checkpoint_reports_its_extension(trained: tuple[Pat
     torch.set_num_threads(1)
     ds, ckpt = trained
     out = tmp_path / "diag"
-    res = run_diagnose(ds, f"neural:{ckpt}", out, DiagnoseConfig(fit_pairs=2, det_pairs=2, n_boot=100, neural_steps=2))
+    res = run_diagnose(ds, ModelSpec.parse(f"neural:{ckpt}"), out,
+                       DiagnoseConfig(fit_pairs=2, det_pairs=2, n_boot=100, neural=NeuralReachConfig(finetune=FinetuneConfig(steps=2))))
     saved = json.loads((out / "report.json").read_text())
     ne = saved["neural_extension"]
     assert saved["model"] == f"neural:{ckpt}" and ne == json.loads(json.dumps(res["neural_extension"]))
