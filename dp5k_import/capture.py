@@ -1,7 +1,8 @@
-"""One imported full-frame DP capture in dataset units, and the image readers adapters share."""
+"""One imported DP capture in dataset units, the scene sources adapters yield, and the readers they share."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -11,13 +12,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dp5k_common.errors import BadInputError
+from dp5k_common.io import read_image_raw
 
 F32 = NDArray[np.float32]
+
+CURVES = ("srgb", "linear")
+"""Transfer curves an importer can undo: ``srgb`` (IEC 61966-2-1, what Canon DPP and most converters write)
+and ``linear`` (the values are already proportional to light)."""
 
 
 @dataclass
 class Capture:
-    """One full-frame DP capture in dataset units.
+    """One DP capture (one camera, one f-number) in dataset units.
 
     Attributes:
         scene: scene id (splits never share one; tiles get ``<scene>_t<row><col>``).
@@ -25,7 +31,11 @@ class Capture:
         depth_mm: (H, W) float32 z-depth, 0 = invalid.
         f_number, focus_distance_mm, focal_length_mm, pixel_pitch_mm: imaging parameters.
         camera: camera id.
-        extra: extra params.json keys (source, licence, ...).
+        extra: extra params.json keys (source, licence, ``sharp_f_number``, measured exposure, ...).
+        split: the source's own split (train / val / test) to keep, None = split by scene at random.
+        focus_point_px: (x, y) in this capture's pixels, None = the image centre.
+        frame_origin_px, frame_size: where this capture lies in its camera's full frame (x0, y0) and that
+            frame's (W, H), in this capture's pixels, when the source itself is a crop (None = whole frame).
     """
 
     scene: str
@@ -39,16 +49,79 @@ class Capture:
     pixel_pitch_mm: float
     camera: str = "cam0"
     extra: dict[str, Any] = field(default_factory=dict)
+    split: str | None = None
+    focus_point_px: tuple[float, float] | None = None
+    frame_origin_px: tuple[int, int] | None = None
+    frame_size: tuple[int, int] | None = None
 
 
-def srgb_to_linear(img_u8: NDArray[np.uint8]) -> F32:
-    """IEC 61966-2-1 inverse transfer: 8-bit sRGB -> linear [0, 1]."""
-    c = img_u8.astype(np.float32) / 255.0
+@dataclass
+class SceneSource:
+    """One scene of a source layout, loaded only when written (a malformed scene fails alone).
+
+    Attributes:
+        scene: scene id as the source names it.
+        where: the scene's folder (error messages name it).
+        load: yields the scene's captures; raises :class:`BadInputError` naming the file on bad input.
+    """
+
+    scene: str
+    where: Path
+    load: Callable[[], Iterator[Capture]]
+
+
+def srgb_to_linear(values01: NDArray[np.floating]) -> F32:
+    """IEC 61966-2-1 inverse transfer: sRGB-encoded values in [0, 1] (or uint8) -> linear [0, 1]."""
+    c = np.asarray(values01)
+    c = c.astype(np.float32) / 255.0 if c.dtype == np.uint8 else c.astype(np.float32)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def linear_to_srgb(linear01: NDArray[np.floating]) -> F32:
+    """IEC 61966-2-1 forward transfer (for writing test layouts and previews): linear [0, 1] -> sRGB [0, 1]."""
+    c = np.clip(np.asarray(linear01, dtype=np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
+def decode_curve(values01: NDArray[np.floating], curve: str) -> F32:
+    """Undo the transfer curve ``curve`` (one of :data:`CURVES`) of values scaled to [0, 1]."""
+    if curve == "srgb":
+        return srgb_to_linear(values01)
+    if curve == "linear":
+        return np.asarray(values01, dtype=np.float32)
+    raise BadInputError(f"unknown transfer curve {curve!r} (known: {', '.join(CURVES)})")
+
+
+def read_rgb01(path: Path) -> tuple[F32, int]:
+    """An 8- or 16-bit RGB (or gray, replicated) image scaled to [0, 1] as stored, and its bit depth.
+
+    Raises:
+        BadInputError: missing, unreadable, float or otherwise not 8/16-bit, or not 1/3/4 channels.
+    """
+    img = read_image_raw(path)
+    if img.dtype == np.uint8:
+        bits = 8
+    elif img.dtype == np.uint16:
+        bits = 16
+    else:
+        raise BadInputError(f"expected an 8- or 16-bit image, got {img.dtype}", where=path)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise BadInputError(f"expected an RGB or gray image, got shape {img.shape}", where=path)
+    return (img.astype(np.float32) / float((1 << bits) - 1)).astype(np.float32), bits
+
+
+def read_linear_rgb(path: Path, curve: str) -> tuple[F32, int]:
+    """:func:`read_rgb01` then :func:`decode_curve`: linear (H, W, 3) float32 and the file's bit depth."""
+    img, bits = read_rgb01(path)
+    return decode_curve(img, curve), bits
+
+
 def read_rgb8(path: Path) -> NDArray[np.uint8]:
-    """An 8-bit RGB image (RGB order); a clear error for a missing or unreadable file."""
+    """An 8-bit RGB image (RGB order); a clear error for a missing, unreadable or non-8-bit file."""
     if not path.is_file():
         raise BadInputError("missing file", where=path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -57,3 +130,20 @@ def read_rgb8(path: Path) -> NDArray[np.uint8]:
     if img.dtype != np.uint8:
         raise BadInputError(f"expected 8-bit, got {img.dtype}", where=path)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth_mm_u16(path: Path) -> F32:
+    """A single-channel 16-bit depth map in millimetres (0 = invalid) as float32 mm."""
+    d = read_image_raw(path)
+    if d.dtype != np.uint16 or d.ndim != 2:
+        raise BadInputError(f"expected single-channel 16-bit depth in mm, got {d.dtype} with shape {d.shape}", where=path)
+    return d.astype(np.float32)
+
+
+def same_size(where: Path, **images: NDArray[Any]) -> tuple[int, int]:
+    """(H, W) shared by all ``images``; a BadInputError naming them when they differ."""
+    shapes = {name: tuple(np.shape(a)[:2]) for name, a in images.items()}
+    if len(set(shapes.values())) != 1:
+        raise BadInputError("images differ in size: " + ", ".join(f"{k} {v[1]}x{v[0]}" for k, v in shapes.items()),
+                            where=where)
+    return next(iter(shapes.values()))  # type: ignore[return-value]

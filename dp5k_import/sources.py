@@ -3,18 +3,54 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 from dp5k_common.errors import BadInputError
 
-from .sdirt import sdirt_captures
+from .capture import SceneSource
+from .dp5k_release import dp5k_sources
+from .dpdd import dpdd_sources
+from .generic import generic_sources
+from .sdirt import sdirt_sources
 from .writer import write_imported
 
-IMPORTERS = {"sdirt": sdirt_captures}
-"""Adapters by name: ``name -> (src) -> list[Capture]``."""
+
+@dataclass(frozen=True)
+class Importer:
+    """One source layout.
+
+    Attributes:
+        sources: ``(src, **options) -> scenes``.
+        tile: default tiling (W, H) of its frames, None = whole frames.
+        options: the keyword options ``sources`` accepts (the CLI passes only these).
+    """
+
+    sources: Callable[..., list[SceneSource]]
+    tile: tuple[int, int] | None
+    options: tuple[str, ...] = ()
 
 
-def import_dataset(kind: str, src: str | os.PathLike[str], out: str | os.PathLike[str], tile: tuple[int, int] | None = None, seed: int = 0) -> dict[str, list[str]]:
-    """Run adapter ``kind`` on ``src`` and write the format-v1 dataset to ``out``."""
+IMPORTERS: dict[str, Importer] = {
+    "dp5k": Importer(dp5k_sources, None, ("crop", "curve", "focal_length_mm")),
+    "sdirt": Importer(sdirt_sources, (192, 128), ("include_unsharp",)),
+    "dpdd": Importer(dpdd_sources, None, ("f_number", "curve")),
+    "generic": Importer(generic_sources, None, ()),
+}
+"""Adapters by name; docs/data-format.md ("Importers") gives each source layout."""
+
+
+def import_dataset(kind: str, src: str | os.PathLike[str], out: str | os.PathLike[str],
+                   tile: tuple[int, int] | None | str = "default", seed: int = 0, **options: Any) -> dict[str, list[str]]:
+    """Run adapter ``kind`` on ``src`` and write the format-v1 dataset to ``out`` (``tile="default"``: the
+    importer's own default). Options the importer does not take are ignored when None, else an error."""
     if kind not in IMPORTERS:
         raise BadInputError(f"unknown import source {kind!r} (known: {', '.join(IMPORTERS)})")
-    return write_imported(out, IMPORTERS[kind](src), tile=tile, seed=seed, source=f"dp5k import {kind}")
+    imp = IMPORTERS[kind]
+    bad = sorted(k for k, v in options.items() if v is not None and k not in imp.options)
+    if bad:
+        raise BadInputError(f"option(s) {', '.join(bad)} do not apply to 'import {kind}'")
+    opts = {k: v for k, v in options.items() if v is not None and k in imp.options}
+    size = imp.tile if tile == "default" else tile
+    return write_imported(out, imp.sources(src, **opts), tile=size, seed=seed, source=f"dp5k import {kind}")  # type: ignore[arg-type]
