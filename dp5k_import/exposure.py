@@ -53,9 +53,11 @@ class Exposure:
         return ((np.asarray(left) * v).astype(np.float32), (np.asarray(right) * v).astype(np.float32),
                 (np.asarray(sharp) * s).astype(np.float32))
 
-    def to_json(self) -> dict[str, float | int]:
+    def to_json(self) -> dict[str, float | int | None]:
+        """For params.json (``combined_residual`` None without a combined frame)."""
+        resid = self.combined_residual if np.isfinite(self.combined_residual) else None
         return {"views_gain": self.views_gain, "sharp_gain": self.sharp_gain, "headroom": self.headroom,
-                "combined_residual": self.combined_residual, "pixels": self.pixels}
+                "combined_residual": resid, "pixels": self.pixels}
 
 
 def measure_exposure(left: NDArray[np.floating], right: NDArray[np.floating], sharp: NDArray[np.floating],

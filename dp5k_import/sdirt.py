@@ -106,15 +106,16 @@ def _unsharp_capture(folder: Path, scene: str) -> Iterator[Capture]:
 
 
 def _unsharp_scenes(root: Path) -> list[tuple[str, Path]]:
-    """(scene id, folder) of the box and casual scenes under an Sdirt root (folders holding l.png)."""
-    out = []
-    for kind in ("box", "casual"):
-        base = root / kind
-        if not base.is_dir():
-            continue
-        for lpath in sorted(base.rglob("l.png")):
-            rel = lpath.parent.relative_to(base).parts
-            out.append((kind + "_" + "_".join(p for p in rel if p != "rgbd"), lpath.parent))
+    """(scene id, folder) of the box (``box/rgbd/<scene>`` or ``box/<scene>``) and casual
+    (``casual/<device>/<scene>``) scenes under an Sdirt root: folders holding l.png."""
+    def scenes_in(base: Path) -> list[Path]:
+        return sorted(p for p in base.iterdir() if p.is_dir() and (p / "l.png").is_file()) if base.is_dir() else []
+
+    box = root / "box" / "rgbd" if (root / "box" / "rgbd").is_dir() else root / "box"
+    out = [(f"box_{p.name}", p) for p in scenes_in(box)]
+    casual = root / "casual"
+    for device in sorted(p for p in casual.iterdir() if p.is_dir()) if casual.is_dir() else []:
+        out += [(f"casual_{device.name}_{p.name}", p) for p in scenes_in(device)]
     return out
 
 
