@@ -58,10 +58,36 @@ def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_
                         intrinsics=None if intrinsics is None else str(intrinsics),
                         filt=dataclasses.replace(FilterConfig(), fill_steps=fill_steps),
                         calib=CalibConfig(max_rms_px=max_rms))
-    outcomes = process_sessions(raw, out, cfg, workers=workers, seed=seed)
+    try:
+        outcomes = process_sessions(raw, out, cfg, workers=workers, seed=seed)
+    finally:
+        echo_warnings(raw, out)
     ok = sum(o.status == "ok" for o in outcomes)
     skipped = sum(o.status == "skipped" for o in outcomes)
     click.echo(f"processed {ok} scene(s), skipped {skipped} finished one(s); dataset in {out}")
+
+
+def echo_warnings(raw: Path, out: Path) -> None:
+    """Repeat, at the end and on stderr, the warnings of every finished scene's report (the calibration checks of
+    ``dp5k_process.refine``), so that a collapsed or corrected calibration is not lost among the progress lines."""
+    from dp5k_common.errors import DP5KError
+    from dp5k_common.io import read_json
+
+    from .package import find_sessions
+
+    try:
+        scenes = [p.name for p in find_sessions(raw)]
+    except DP5KError:
+        return
+    for scene in scenes:
+        rp = out / "reports" / scene / "report.json"
+        try:
+            rep = read_json(rp) if rp.is_file() else {}
+        except DP5KError:
+            continue
+        if rep.get("status") == "ok":
+            for w in rep.get("warnings", []):
+                click.echo(f"WARNING: scene {scene}: {w}", err=True)
 
 
 @click.command("validate-depth")

@@ -36,6 +36,7 @@ from .focus import FocusConfig, focus_distance
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
 from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
+from .refine import RefineConfig, refine_stereo
 from .session import Session, check_size
 from .triangulate import (CodeView, TriangulationConfig, code_view, depth_from_match, match_in_other,
                           normalised_rays)
@@ -57,6 +58,8 @@ class ProcessConfig:
         intrinsics: FileStorage YAML with K0, dist0, K1, dist1 at raw resolution (a prior per-camera
             calibration); None = the manifest's, else estimated from the session's own ChArUco views.
         board: the ChArUco board.
+        refine: checking the ChArUco extrinsics against the structured-light matches, refining them when the
+            ray-gap test rejects most (``dp5k_process.refine``); None = never.
     """
 
     out_size: tuple[int, int] | None = None
@@ -69,6 +72,7 @@ class ProcessConfig:
     calib: CalibConfig = CalibConfig()
     intrinsics: str | None = None
     board: BoardSpec = DEFAULT_BOARD
+    refine: RefineConfig | None = RefineConfig()
 
 
 @dataclass
@@ -315,8 +319,13 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
             raise BadInputError(f"{cam} structured-light frames are {size}, expected {raw_size}", where=session.root)
     timings["decode_s"] = time.perf_counter() - t0
 
+    # issue 20: the ChArUco extrinsics checked against the structured light, refined where they do not fit
+    t0 = time.perf_counter()
+    st, cal_info["refinement"], warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene)
+    timings["refine_s"] = time.perf_counter() - t0
+
     report: dict[str, Any] = {"scene": session.scene, "manifest_scene": session.manifest.get("scene"),
-                              "calibration": cal_info, "cameras": {}}
+                              "calibration": cal_info, "warnings": warnings, "cameras": {}}
     pairs: list[Pair] = []
     depth_out: dict[str, NDArray[np.float32]] = {}
     timings["depth_s"] = timings["views_s"] = timings["pairs_s"] = 0.0

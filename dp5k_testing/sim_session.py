@@ -49,12 +49,29 @@ def wall_scene(yaw_deg: float, occluder: bool = False):
     return Scene(f"wall{yaw_deg:g}{'_hidden' if occluder else ''}", tuple(prims), np.array([0.0, 0.0, 2.2]))
 
 
+def knocked(rig, rotation_deg: tuple[float, float, float]):
+    """The rig with cam1 turned about its own centre by the rotation vector ``rotation_deg`` (degrees, in cam1's
+    frame: x = pitch, y = yaw, z = roll), as a knocked tripod or a refocused lens would leave it."""
+    import dataclasses
+
+    if not any(rotation_deg):
+        return rig
+    c0, c1 = rig.cameras
+    Rd = cv2.Rodrigues(np.radians(np.asarray(rotation_deg, float)))[0]
+    return dataclasses.replace(rig, cameras=(c0, dataclasses.replace(c1, R=Rd @ c1.R, t=Rd @ c1.t)))
+
+
 def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 4.0), seed: int = 1,
                   projector_size: tuple[int, int] = (1920, 1200), board_on_wall: bool = False,
-                  manifest_intrinsics: bool = True) -> dict:
+                  manifest_intrinsics: bool = True, charuco_rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  reuse: Path | None = None) -> dict:
     """Render and write RAW/<scene>/...; returns the studio's ground truth per camera (raw resolution).
 
-    ``scene_name`` is a studio preset / seed, or a ``Scene`` (its ``name`` names the folder)."""
+    ``scene_name`` is a studio preset / seed, or a ``Scene`` (its ``name`` names the folder).
+    ``charuco_rotation_deg``: the ChArUco shots are taken with cam1 turned by this rotation vector (:func:`knocked`)
+    and the scene with the true rig: the session's own calibration is then that far off.
+    ``reuse``: a session folder of the same scene, rig and seed written before; its scene frames (DP, sharp,
+    structured light) are copied instead of rendered again, only the ChArUco shots are rendered."""
     rig = make_rig(scale, seed=seed, projector_size=projector_size)
     if isinstance(scene_name, str):
         scene = make_scene(scene_name, rig)
@@ -77,7 +94,7 @@ def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 
         studio.set_board_pose(wall_board_pose(scene, DEFAULT_BOARD.size_m))
     focus_px = [studio.focus_point_px(c) for c in (0, 1)]
     focus_m = [studio.focus_distance_m(c, focus_px[c]) for c in (0, 1)]
-    calib_studio = Studio(plane_scene(8.0), rig, seed=seed + 1)
+    calib_studio = Studio(plane_scene(8.0), knocked(rig, charuco_rotation_deg), seed=seed + 1)
     for k, pose in enumerate(CHARUCO_POSES):
         calib_studio.set_board_pose(pose)
         for c in (0, 1):
@@ -87,16 +104,26 @@ def write_session(root: Path, scene_name, scale: str = "small", f_numbers=(1.8, 
             files.append(dict(path=p.relative_to(out).as_posix(), kind="charuco", camera=f"cam{c}", f_number=22.0,
                               shutter_s=0.25, iso=100, size=p.stat().st_size, sha256=sha256_file(p)))
     Wp, Hp = projector_size
-    studio.set_projector_image(None)
-    for c in (0, 1):
-        for N in f_numbers:
-            shoot(c, f"dp_f{N:g}", "dp", N, 1 / 500 * (N / 1.8) ** 2, focus_m[c])
-        shoot(c, "sharp_f22", "sharp", 22.0, 1 / 4, focus_m[c])
-    for k in range(projection_count(Wp, Hp)):
-        studio.set_projector_image(projection(k, Wp, Hp))
+    if reuse is not None:  # the scene's frames as rendered before (same scene, rig, seed)
+        import shutil
+
+        old = json.loads((Path(reuse) / "manifest.json").read_text())
+        for f in old["files"]:
+            if f["kind"] != "charuco":
+                (out / f["path"]).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(Path(reuse) / f["path"], out / f["path"])
+                files.append(f)
+    else:
+        studio.set_projector_image(None)
         for c in (0, 1):
-            shoot(c, f"sl_{k:02d}", "sl", 22.0, 1 / 4, focus_m[c], pattern=k)
-    studio.set_projector_image(None)
+            for N in f_numbers:
+                shoot(c, f"dp_f{N:g}", "dp", N, 1 / 500 * (N / 1.8) ** 2, focus_m[c])
+            shoot(c, "sharp_f22", "sharp", 22.0, 1 / 4, focus_m[c])
+        for k in range(projection_count(Wp, Hp)):
+            studio.set_projector_image(projection(k, Wp, Hp))
+            for c in (0, 1):
+                shoot(c, f"sl_{k:02d}", "sl", 22.0, 1 / 4, focus_m[c], pattern=k)
+        studio.set_projector_image(None)
     truth = {f"cam{c}": studio.ground_truth(c) for c in (0, 1)}
     gt = out / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
@@ -149,3 +176,24 @@ def assert_depth_and_focus(pair, gt: Path, truth: dict, cam: str) -> None:
     assert np.median(np.abs(pair.depth_mm[ok] - zh[ok]) / zh[ok]) <= 0.005
     F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
     assert abs(pair.params.focus_distance_mm - F) / F <= 0.005
+
+
+def export_sl_images(session_dir: Path, dest: Path, cam: str, colour_tiff: bool = False) -> tuple[int, int]:
+    """A session's structured-light frames of ``cam`` as an ``sl-depth`` input folder: ``dest/im1 ... im46``
+    (projection order, natural names), the main raw frame's counts as 16-bit gray PNG, or with ``colour_tiff`` as
+    16-bit 3-channel TIFF (gray replicated). Returns (black level, white level) of the raws."""
+    import tifffile
+
+    from dp5k_common.rawfile import read_frame
+
+    manifest = json.loads((Path(session_dir) / "manifest.json").read_text())
+    sl = sorted((f for f in manifest["files"] if f["kind"] == "sl" and f["camera"] == cam), key=lambda f: f["pattern"])
+    dest.mkdir(parents=True, exist_ok=True)
+    black = white = 0
+    for k, f in enumerate(sl):
+        main, black, white = read_frame(Path(session_dir) / f["path"], 0)
+        if colour_tiff:
+            tifffile.imwrite(dest / f"im{k + 1}.tif", np.repeat(main[..., None], 3, axis=2))
+        else:
+            cv2.imwrite(str(dest / f"im{k + 1}.png"), main)
+    return black, white

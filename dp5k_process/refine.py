@@ -1,0 +1,379 @@
+"""Stereo extrinsics refined from the structured-light matches, when the ChArUco calibration does not fit the scene.
+
+The Gray code matches the two cameras without any calibration (pixels with the same projector code), so a scene
+gives tens of thousands of correspondences. With the right extrinsics every such pair of rays meets; the
+triangulation keeps a match only when the rays pass within ``TriangulationConfig.max_gap_px`` (1.5 px) of each
+other. A rig whose geometry moved after the ChArUco shots (a knocked tripod, focus breathing) or a calibration
+file from another session fails that test for most matches, and depth coverage collapses without any other sign.
+
+So, when the gate keeps fewer than ``RefineConfig.trigger_pass_rate`` of the decoded matches:
+
+1. correspondences: every matched pixel of cam0 at the probe scale (the finest whose projector pixel spans at least
+   one camera pixel) and its sub-pixel match in cam1, undistorted with the ChArUco intrinsics (kept as they are);
+2. a robust start: the essential matrix by RANSAC (``cv2.findEssentialMat`` on normalised coordinates) and
+   ``cv2.recoverPose``, and the ChArUco extrinsics themselves; the one with the lower robust cost is kept;
+3. Levenberg-Marquardt-like robust least squares (``scipy.optimize.least_squares``, soft-L1 loss) of the Sampson
+   epipolar distance in pixels over 5 parameters: a rotation increment (3) and the baseline direction (2).
+
+**Metric scale.** Epipolar geometry fixes only the direction of the baseline; its length is the ChArUco
+calibration's ``|T|`` (the board's squares are metric). A knocked camera turns far more than it moves: a 4 deg
+turn moves image points by ~7 % of the focal length, while a 1 mm change of a 0.3 m baseline changes depth by
+0.3 %; that residual scale error is not observable from the scene and remains.
+
+**What cannot be corrected.** A rotation about the axis perpendicular to both the baseline and the viewing
+direction (yaw, for a horizontal rig) moves points *along* their epipolar lines: the ray-gap test barely sees it
+and the epipolar residual constrains it only through the perspective terms (corners of the image). Such an error
+acts like a disparity offset (depth error growing with depth); the refinement reduces it where the field of
+view allows and the warning below says how far the geometry moved.
+
+The refinement is used only if it makes more matches pass the gate; the report carries both calibrations, both
+coverages, the epipolar errors and the warnings (:func:`refine_stereo`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.calibrate import CameraCalibration, StereoCalibration, rotation_angle_deg
+
+from .graycode import GrayDecode
+from .triangulate import TriangulationConfig, code_view, depth_from_match, match_in_other, midpoint_triangulate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """When and how the stereo extrinsics are refined, and when the report warns.
+
+    Attributes:
+        trigger_pass_rate: refine when fewer than this fraction of the decoded matches pass the ray-gap test.
+        warn_pass_rate: warn when, in the end, fewer than this fraction pass (the calibration still does not fit).
+        warn_rotation_deg: warn when the refinement rotated the stereo geometry by more than this (degrees).
+        warn_direction_deg: warn when it turned the baseline direction by more than this (degrees).
+        max_points: correspondences used (a seeded random subset above this).
+        ransac_px: RANSAC inlier threshold of the essential matrix, and the scale of the soft-L1 loss (px).
+        min_points: fewest correspondences to refine from.
+        min_flatness: the five-parameter fallback is used only when the matched points, triangulated with it, are
+            not a plane: the ratio of the 3rd to the 1st singular value of the centred points must reach this (the
+            projector self-calibration's rule). Matches on one plane leave the extrinsics ambiguous: on the
+            kamino410 wall two homography decompositions fit them to 0.24 and 0.30 px median.
+        free_pass_rate: ... and only when it makes at least this fraction of the matches pass the ray-gap test: it
+            frees the two directions the matches barely constrain, so it must fit clearly to be believed.
+        seed: seed of the subset and of RANSAC's sampling.
+    """
+
+    trigger_pass_rate: float = 0.5
+    warn_pass_rate: float = 0.5
+    warn_rotation_deg: float = 0.5
+    warn_direction_deg: float = 2.0
+    max_points: int = 20000
+    ransac_px: float = 1.0
+    min_points: int = 200
+    min_flatness: float = 0.05
+    free_pass_rate: float = 0.8
+    seed: int = 0
+
+
+@dataclass
+class Matches:
+    """Camera-camera correspondences through the projector code (cam0 is the reference).
+
+    Attributes:
+        x0, x1: (N, 2) pixel coordinates in cam0 and cam1 (distorted, as captured).
+        scale: the projector scale exponent they were matched at.
+        n_pixels: cam0's pixel count (coverage denominator).
+    """
+
+    x0: NDArray[np.float64]
+    x1: NDArray[np.float64]
+    scale: int
+    n_pixels: int
+
+
+def probe_scale(dec: GrayDecode, tri: TriangulationConfig) -> int:
+    """The finest projector scale whose pixel spans at least one camera pixel (the coarsest if none)."""
+    from .pipeline import camera_px_per_projector_px  # pipeline imports this module
+
+    col, row, valid = dec.at_scale(0)
+    fp = camera_px_per_projector_px(code_view(col, row, valid, dec.scale_size(0), tri, 0))
+    n = dec.cfg.n_scales
+    return next((s for s in range(n) if np.isfinite(fp) and fp * (1 << s) >= 1.0), n - 1)
+
+
+def sl_matches(decs: dict[str, GrayDecode], tri: TriangulationConfig, scale: int | None = None) -> Matches:
+    """Sub-pixel cam0 -> cam1 matches through the projector code (no calibration involved)."""
+    s = probe_scale(decs["cam0"], tri) if scale is None else scale
+    views = {}
+    for cam in ("cam0", "cam1"):
+        col, row, valid = decs[cam].at_scale(s)
+        views[cam] = code_view(col, row, valid, decs[cam].scale_size(s), tri, s)
+    q, ok = match_in_other(views["cam0"], views["cam1"], tri)
+    ys, xs = np.nonzero(ok)
+    return Matches(np.column_stack([xs, ys]).astype(np.float64), q[ok].astype(np.float64), s, ok.size)
+
+
+def procam_matches(dec: GrayDecode, tri: TriangulationConfig, scale: int = 0) -> Matches:
+    """Camera -> projector correspondences of a camera-projector rig: every decoded camera pixel and its sub-pixel
+    projector coordinate (full scale; the smoothed code of :func:`code_view`). With the projector as ``cam1`` of a
+    :class:`StereoCalibration`, :func:`check_and_refine` checks and refines the camera-projector extrinsics."""
+    col, row, valid = dec.at_scale(scale)
+    v = code_view(col, row, valid, dec.scale_size(scale), tri, scale)
+    ok = valid & np.isfinite(v.u) & np.isfinite(v.v)
+    ys, xs = np.nonzero(ok)
+    proj = np.column_stack([v.to_full(v.u)[ok], v.to_full(v.v)[ok]])
+    return Matches(np.column_stack([xs, ys]).astype(np.float64), proj.astype(np.float64), scale, ok.size)
+
+
+def _normalised(x: NDArray[np.float64], cam: CameraCalibration) -> NDArray[np.float64]:
+    return cv2.undistortPoints(x.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+
+
+def gate_stats(m: Matches, st: StereoCalibration, tri: TriangulationConfig) -> tuple[float, float]:
+    """(pass rate: fraction of the matches whose rays meet within the gate, coverage: those / cam0's pixels)."""
+    if len(m.x0) == 0:
+        return 0.0, 0.0
+    W, H = st.cam0.image_size
+    rays = np.zeros((1, len(m.x0), 2), np.float32)
+    rays[0] = _normalised(m.x0, st.cam0)
+    depth = depth_from_match(rays, float(st.cam0.K[0, 0]), m.x1.reshape(1, -1, 2).astype(np.float32),
+                             np.ones((1, len(m.x0)), bool), st.cam1, st.R, st.T, tri)
+    n_ok = int(np.isfinite(depth).sum())
+    return n_ok / len(m.x0), n_ok / m.n_pixels
+
+
+def flatness(x0: NDArray[np.float64], x1: NDArray[np.float64], st: StereoCalibration) -> float:
+    """How far the points triangulated from x0 <-> x1 with ``st`` are from one plane: the robust spread (normalised
+    MAD) along their least principal axis over that along the largest (0 = a plane). Robust, because mismatches
+    at depth edges would otherwise make a wall look thick."""
+    a = np.column_stack([_normalised(x0, st.cam0), np.ones(len(x0))])
+    b = np.column_stack([_normalised(x1, st.cam1), np.ones(len(x1))])
+    X = midpoint_triangulate(a, b, st.R, np.asarray(st.T, np.float64).ravel())[0]
+    X = X[np.isfinite(X).all(1)]
+    if len(X) < 10:
+        return 0.0
+    med = np.median(X, 0)
+    X = X[(np.abs(X - med) <= 5 * 1.4826 * np.median(np.abs(X - med), 0) + 1e-12).all(1)]
+    if len(X) < 10:
+        return 0.0
+    axes = np.linalg.svd(X - np.median(X, 0), full_matrices=False)[2]
+    proj = (X - np.median(X, 0)) @ axes.T
+    spread = 1.4826 * np.median(np.abs(proj - np.median(proj, 0)), 0)
+    return float(spread[2] / spread[0]) if spread[0] > 0 else 0.0
+
+
+def sampson_px(n0: NDArray[np.float64], n1: NDArray[np.float64], R: NDArray[np.float64], T: NDArray[np.float64],
+               f_px: float) -> NDArray[np.float64]:
+    """Signed Sampson epipolar distance (pixels at focal length ``f_px``) of normalised correspondences."""
+    t = np.asarray(T, np.float64).ravel()
+    t = t / np.linalg.norm(t)
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    x0 = np.column_stack([n0, np.ones(len(n0))])
+    x1 = np.column_stack([n1, np.ones(len(n1))])
+    Ex0 = x0 @ E.T
+    Etx1 = x1 @ E
+    num = np.einsum("ij,ij->i", x1, Ex0)
+    den = np.sqrt(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2)
+    return f_px * num / np.maximum(den, 1e-12)
+
+
+def held_axes(d: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Unit vectors in cam1's frame for a baseline direction ``d``: ``u = d``, ``n = u x z`` perpendicular to the
+    baseline and cam1's optical axis ``z`` (vertical for a horizontal rig) and ``m = u x n`` (towards ``z``)."""
+    u = np.asarray(d, np.float64).ravel() / np.linalg.norm(d)
+    n = np.cross(u, np.array([0.0, 0.0, 1.0]))
+    n /= np.linalg.norm(n)
+    return u, n, np.cross(u, n)
+
+
+def refine_extrinsics(x0: NDArray[np.float64], x1: NDArray[np.float64], cam0: CameraCalibration,
+                      cam1: CameraCalibration, R0: NDArray[np.float64], T0: NDArray[np.float64],
+                      cfg: RefineConfig = RefineConfig()) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+    """Extrinsics (R, T: ``X1 = R X0 + T``, |T| = |T0| metres) that best explain pixel correspondences x0 <-> x1,
+    changed from (R0, T0) only where epipolar geometry determines them (module docstring).
+
+    Three parameters, in cam1's frame, with the axes ``u, n, m`` of the refined baseline (:func:`held_axes`):
+    rotations about ``u`` and ``m`` (R = exp(alpha u + gamma m) R0) and the baseline's tilt towards ``n`` (T = |T0|
+    (d0 + b n) / norm, d0 = T0 / |T0|). Held at the ChArUco values: the rotation about ``n`` and the baseline's
+    component along ``m``, which move points along their epipolar lines. The axes follow the refined baseline (a
+    few fixed-point rounds), so that a camera turned about its own axes keeps its rotation about ``n`` at zero
+    whatever the turn did to the baseline's direction. Intrinsics are held. Returns R, T and numbers for the report
+    (the start used, RANSAC inliers, epipolar errors in px) with, under ``"free"``, the fit of all five parameters
+    (its R and T, and how far it moved the held directions): the fallback when the three cannot explain the matches.
+    """
+    from scipy.optimize import least_squares
+
+    n0, n1 = _normalised(x0, cam0), _normalised(x1, cam1)
+    f_px = 0.5 * float(cam0.K[0, 0] + cam1.K[0, 0])
+    T0 = np.asarray(T0, np.float64).ravel()
+    base = float(np.linalg.norm(T0))
+    d0 = T0 / base
+    axes = held_axes(d0)
+
+    def unpack(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """p = (alpha, gamma, b), optionally (+ rotation about n, tilt along m) for the free fit."""
+        u, n, m = axes
+        q = np.r_[p, np.zeros(5 - len(p))]
+        t = d0 + q[2] * n + q[4] * m
+        return cv2.Rodrigues(q[0] * u + q[1] * m + q[3] * n)[0] @ R0, base * t / np.linalg.norm(t)
+
+    def pack(R: NDArray[np.float64], T: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The five parameters of a pose (the tilt offsets to first order, exact for unit-norm poses near d0)."""
+        u, n, m = axes
+        w = cv2.Rodrigues(R @ R0.T)[0].ravel()
+        d = np.asarray(T, np.float64).ravel() / np.linalg.norm(T)
+        d = d / (d @ d0)  # on the tangent plane at d0
+        return np.r_[w @ u, w @ m, (d - d0) @ n, w @ n, (d - d0) @ m]
+
+    def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return sampson_px(n0, n1, *unpack(p), f_px)
+
+    def robust_cost(p: NDArray[np.float64]) -> float:
+        r = resid(p) / cfg.ransac_px
+        return float(np.sum(2 * (np.sqrt(1 + r * r) - 1)))
+
+    def fit(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return least_squares(resid, p, loss="soft_l1", f_scale=cfg.ransac_px, x_scale=np.full(len(p), 1e-3),
+                             max_nfev=200).x
+
+    starts: list[tuple[str, NDArray[np.float64]]] = [("charuco", np.zeros(5))]
+    cv2.setRNGSeed(cfg.seed)
+    E, inl = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=cfg.ransac_px / f_px)
+    n_inl = 0
+    if E is not None and E.shape == (3, 3):
+        n_inl, Re, te, _ = cv2.recoverPose(E, n0, n1, np.eye(3), mask=inl.copy())
+        if float(te.ravel() @ d0) > 0.2:  # the same side as the ChArUco baseline, within ~80 deg
+            starts.append(("essential matrix", pack(Re, te.ravel())))
+    name, p = min(starts, key=lambda s: robust_cost(s[1][:3]))
+    p = p[:3]
+    for _ in range(3):  # the held axes follow the refined baseline
+        R, T = unpack(p := fit(p))
+        w = cv2.Rodrigues(R @ R0.T)[0].ravel()
+        axes = held_axes(T)
+        p = np.r_[w @ axes[0], w @ axes[2], ((T / base) - d0) @ axes[1]]
+    p = fit(p)
+    # all five parameters, from the best of the starts and the three-parameter solution
+    free = fit(min([np.r_[p, 0.0, 0.0]] + [s[1] for s in starts], key=robust_cost))
+    R, T = unpack(p)
+    Rf, Tf = unpack(free)
+    before = np.abs(resid(np.zeros(3)))
+    info = {"start": name, "ransac_inliers": int(n_inl), "points": int(len(n0)),
+            "epipolar_error_px_before": float(np.median(before)),
+            "epipolar_error_px_after": float(np.median(np.abs(resid(p)))),
+            "epipolar_p90_px_after": float(np.percentile(np.abs(resid(p)), 90)),
+            "held_axis_cam1": axes[1].round(4).tolist(),
+            "free": {"R": Rf, "T": Tf, "epipolar_error_px": float(np.median(np.abs(resid(free)))),
+                     "rotation_about_held_axis_deg": float(np.degrees(free[3])),
+                     "baseline_tilt_forward_deg": float(np.degrees(np.arctan(free[4])))}}
+    return R, T, info
+
+
+def _pose_json(R: NDArray[np.float64], T: NDArray[np.float64]) -> dict[str, Any]:
+    rv = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+    return {"rotation_vector_deg": np.degrees(rv).round(4).tolist(), "T_m": np.asarray(T, float).ravel().round(6).tolist(),
+            "R": np.asarray(R, float).round(8).tolist()}
+
+
+def refine_stereo(decs: dict[str, GrayDecode], st: StereoCalibration, tri: TriangulationConfig,
+                  cfg: RefineConfig | None = RefineConfig(), where: str = "") -> tuple[StereoCalibration, dict[str, Any], list[str]]:
+    """Check the ChArUco extrinsics against the structured-light matches; refine them when the ray-gap test rejects
+    most matches (module docstring).
+
+    Returns:
+        the calibration to triangulate with (the input, or a copy with refined R, T and its rectification),
+        the report's ``refinement`` object, and warnings (one line each, also logged).
+    """
+    if cfg is None:
+        return st, {"enabled": False}, []
+    return check_and_refine(sl_matches(decs, tri), st, tri, cfg, where)
+
+
+def check_and_refine(m: Matches, st: StereoCalibration, tri: TriangulationConfig, cfg: RefineConfig = RefineConfig(),
+                     where: str = "") -> tuple[StereoCalibration, dict[str, Any], list[str]]:
+    """:func:`refine_stereo` on given correspondences: ``m.x0`` in ``st.cam0``, ``m.x1`` in ``st.cam1`` (which may be
+    a projector, for a camera-projector rig)."""
+    rate0, cov0 = gate_stats(m, st, tri)
+    info: dict[str, Any] = {"enabled": True, "probe_scale": f"1/{1 << m.scale}", "matches": int(len(m.x0)),
+                            "gate_px": tri.max_gap_px, "gate_pass_rate_charuco": rate0, "stereo_coverage_charuco": cov0,
+                            "charuco": _pose_json(st.R, st.T), "triggered": rate0 < cfg.trigger_pass_rate,
+                            "applied": False}
+    warnings: list[str] = []
+    out, rate, cov = st, rate0, cov0
+    if info["triggered"] and len(m.x0) >= cfg.min_points:
+        idx = np.arange(len(m.x0))
+        if len(idx) > cfg.max_points:
+            idx = np.sort(np.random.default_rng(cfg.seed).choice(len(idx), cfg.max_points, replace=False))
+        R, T, rinfo = refine_extrinsics(m.x0[idx], m.x1[idx], st.cam0, st.cam1, st.R, st.T, cfg)
+        free = rinfo.pop("free")
+        tried = []
+        for mode, Rc, Tc in (("three parameters", R, T), ("five parameters", free["R"], free["T"])):
+            cand = replace(st, R=Rc, T=np.asarray(Tc, float).ravel())
+            cand.rectify()
+            flat = flatness(m.x0[idx], m.x1[idx], cand)
+            if mode == "five parameters":
+                free["flatness"] = flat
+                if flat < cfg.min_flatness:
+                    break  # a plane: more than one pose explains the matches
+            else:
+                info["flatness"] = flat
+            tried.append((mode, cand, *gate_stats(m, cand, tri)))
+            if tried[-1][2] >= cfg.trigger_pass_rate:
+                break  # the five-parameter fit only when the three cannot make the matches fit
+        mode, cand, rate1, cov1 = max(tried, key=lambda c: c[2])
+        info.update(rinfo, gate_pass_rate_refined=rate1, stereo_coverage_refined=cov1, refined=_pose_json(cand.R, cand.T),
+                    mode=mode, free_fit={k: v for k, v in free.items() if k not in ("R", "T")},
+                    rotation_change_deg=rotation_angle_deg(st.R, cand.R),
+                    baseline_direction_change_deg=float(np.degrees(np.arccos(np.clip(
+                        np.dot(st.T.ravel(), cand.T) / (np.linalg.norm(st.T) * np.linalg.norm(cand.T)), -1, 1)))),
+                    baseline_m=float(np.linalg.norm(cand.T)))
+        if len(tried) == 2:
+            info["gate_pass_rate_three_parameters"] = tried[0][2]
+        need = cfg.free_pass_rate if mode == "five parameters" else cfg.trigger_pass_rate
+        if rate1 >= need and rate1 > rate0:
+            out, rate, cov = cand, rate1, cov1
+            info["applied"] = True
+            moved = (info["rotation_change_deg"] > cfg.warn_rotation_deg
+                     or info["baseline_direction_change_deg"] > cfg.warn_direction_deg)
+            if moved or mode == "five parameters":
+                warnings.append(
+                    f"the stereo calibration did not fit the structured light: refined from the scene's own matches "
+                    f"({mode}), it moved by {info['rotation_change_deg']:.2f} deg in rotation and "
+                    f"{info['baseline_direction_change_deg']:.2f} deg in baseline direction (warning above "
+                    f"{cfg.warn_rotation_deg:g} / {cfg.warn_direction_deg:g} deg); matches passing the "
+                    f"{tri.max_gap_px:g} px ray gap {100 * rate0:.1f} % -> {100 * rate1:.1f} %. Baseline length kept "
+                    f"from the calibration ({info['baseline_m']:.4f} m). Check the rig (knocked, refocused?) and the depth"
+                    + ("; the rotation about the axis perpendicular to the baseline and the baseline's forward tilt "
+                       "came from the scene's perspective alone (a depth-scale error is possible)"
+                       if mode == "five parameters" else "")
+                    + (f"; the scene is nearly one plane (flatness {info['flatness']:.3f} below {cfg.min_flatness:g}), "
+                       f"on which the pitch about the baseline and the baseline's tilt trade off: expect depth errors "
+                       f"of the order of 1 %" if info["flatness"] < cfg.min_flatness else ""))
+        else:
+            warnings.append(
+                f"refining the stereo extrinsics from the structured light did not make the matches fit (passing the "
+                f"{tri.max_gap_px:g} px ray gap: {100 * rate0:.1f} % -> {100 * rate1:.1f} %, median epipolar error "
+                f"{info['epipolar_error_px_before']:.1f} -> {info['epipolar_error_px_after']:.1f} px with three parameters, "
+                f"{free['epipolar_error_px']:.2f} px with five"
+                + (f", not used: the matches lie on one plane (flatness {free['flatness']:.3f}), which more than one "
+                   f"pose explains" if free.get("flatness", 1.0) < cfg.min_flatness else
+                   f" ({100 * rate1:.1f} % passing; not used below {100 * cfg.free_pass_rate:.0f} %)" if mode == "five parameters" else "")
+                + "); kept the given calibration: it is wrong beyond what this scene can correct (intrinsics? another "
+                  "rig?); calibrate the rig again")
+    elif info["triggered"]:
+        warnings.append(f"too few structured-light matches ({len(m.x0)}) to check or refine the stereo calibration")
+    info["gate_pass_rate"] = rate
+    info["stereo_coverage"] = cov
+    if rate < cfg.warn_pass_rate:
+        warnings.append(f"LOW DEPTH COVERAGE: only {100 * rate:.1f} % of the decoded structured-light matches pass the "
+                        f"{tri.max_gap_px:g} px ray-gap test (stereo coverage {100 * cov:.1f} % of the pixels at scale "
+                        f"{info['probe_scale']}; warning below {100 * cfg.warn_pass_rate:.0f} %): the stereo calibration "
+                        f"does not fit these images")
+    for w in warnings:
+        log.warning("%s%s", f"{where}: " if where else "", w)
+    return out, info, warnings
