@@ -28,7 +28,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "verify": ("dp5k_capture.cli", "verify_command", "Verify raw sessions: sizes, SHA-256, counts, Dual Pixel frames."),
     "process": ("dp5k_process.cli", "process_command", "Process raw sessions into the dataset format v1."),
     "validate-depth": ("dp5k_process.cli", "validate_depth_command", "Depth accuracy against a ChArUco wall (Eq. 4)."),
-    "sl-depth": ("dp5k_process.sl_depth", "sl_depth_command", "Structured-light depth of camera 0 from any stereo rig's Gray-code images."),
+    "sl-depth": ("dp5k_process.sl_depth", "sl_depth_command", "Structured-light depth of camera 0 from any stereo rig's Gray code."),
     "check": ("dp5k_common.check", "check_command", "Validate a format-v1 dataset pair by pair."),
     "studio": ("dp5k_studio.cli", "studio_group", "The virtual studio: scenes, renders, datasets with effects."),
     "train": ("neural_dp.cli", "train_command", "Train the Neural DP Simulator on a dataset."),
