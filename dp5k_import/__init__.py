@@ -8,7 +8,14 @@ pair by pair, and reports a malformed scene without losing the others. :data:`IM
 name (dp5k release, Sdirt DP119, DPDD, generic folders); docs/data-format.md gives each source layout.
 """
 
-from .capture import Capture, SceneSource, decode_curve, linear_to_srgb, read_rgb8, srgb_to_linear
+from .capture import (
+           Capture,
+           SceneSource,
+           decode_curve,
+           linear_to_srgb,
+           read_rgb8,
+           srgb_to_linear,
+)
 from .dp5k_release import dp5k_sources
 from .dpdd import dpdd_sources
 from .exposure import Exposure, measure_exposure
@@ -17,6 +24,21 @@ from .sdirt import sdirt_captures, sdirt_sources
 from .sources import IMPORTERS, import_dataset
 from .writer import write_imported
 
-__all__ = ["Capture", "Exposure", "IMPORTERS", "SceneSource", "decode_curve", "dp5k_sources", "dpdd_sources",
-           "generic_sources", "import_dataset", "linear_to_srgb", "measure_exposure", "read_rgb8", "sdirt_captures",
-           "sdirt_sources", "srgb_to_linear", "write_imported"]
+__all__ = [
+           "IMPORTERS",
+           "Capture",
+           "Exposure",
+           "SceneSource",
+           "decode_curve",
+           "dp5k_sources",
+           "dpdd_sources",
+           "generic_sources",
+           "import_dataset",
+           "linear_to_srgb",
+           "measure_exposure",
+           "read_rgb8",
+           "sdirt_captures",
+           "sdirt_sources",
+           "srgb_to_linear",
+           "write_imported",
+]

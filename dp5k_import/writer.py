@@ -18,7 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dp5k_common.dataset import SPLITS, PairParams, split_scenes, write_index, write_pair
+from dp5k_common.dataset import (
+    SPLITS,
+    PairParams,
+    split_scenes,
+    write_index,
+    write_pair,
+)
 from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.optics import coc_diameter_px
 from dp5k_common.progress import progress

@@ -28,8 +28,9 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 import cv2
@@ -38,7 +39,13 @@ from numpy.typing import NDArray
 
 from calib.calibrate import CameraCalibration, StereoCalibration
 from dp5k_common.errors import BadInputError
-from dp5k_common.io import read_image_raw, write_bytes_atomic, write_json_atomic, write_png16, write_tiff_float32
+from dp5k_common.io import (
+    read_image_raw,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_png16,
+    write_tiff_float32,
+)
 
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode, n_patterns
 from .pipeline import ProcessConfig, depth_for_camera

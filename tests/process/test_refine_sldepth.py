@@ -65,7 +65,7 @@ def test_knocked_rig_is_refined_to_the_true_calibrations_coverage_and_accuracy(s
     assert 3.0 < ref["rotation_change_deg"] < 5.0
     assert ref["baseline_m"] == pytest.approx(np.linalg.norm(ref["charuco"]["T_m"]))  # metric scale from ChArUco
     assert any("did not fit the structured light" in w for w in rep["warnings"])
-    R_true, T_true = make_rig("small", seed=1).stereo_RT()
+    R_true, _ = make_rig("small", seed=1).stereo_RT()
     assert rotation_angle_deg(np.array(ref["refined"]["R"]), R_true) < 0.05
     assert rotation_angle_deg(np.array(ref["charuco"]["R"]), R_true) > 3.0
     true_rep = _report(processed["true"])["calibration"]["refinement"]
