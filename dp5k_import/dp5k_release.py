@@ -96,7 +96,8 @@ def crop_box(crop: str | tuple[int, int, int, int] | None, cam: str, size: tuple
         raise BadInputError(f"unknown crop {crop!r} (release, none or ROW0:ROW1,COL0:COL1)")
     r0, r1, c0, c1 = (int(v) for v in box)
     if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
-        raise BadInputError(f"crop rows {r0}-{r1}, columns {c0}-{c1} do not fit the {W}x{H} frame", where=where)
+        raise BadInputError(f"crop rows {r0}-{r1}, columns {c0}-{c1} do not fit the {W}x{H} frame (--crop none, or "
+                            f"CAM=ROW0:ROW1,COL0:COL1)", where=where)
     return r0, r1, c0, c1
 
 
