@@ -66,9 +66,10 @@ def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int,
                exposure of the views and the sharp frame measured against FN_<N>_c; sharp_f_number 22.
       sdirt    Sdirt DP119 (or its real_sample_set): the planar targets (f/20 sharp, f/4 views, depth).
       dpdd     DPDD: SRC/{train,val,test}_{c,l,r}/{source,target}; splits kept. NO DEPTH: depth is 0 (invalid)
-               everywhere and the focus distance and focal length are placeholders, so these pairs serve checks
-               that need no depth (left + right against the combined frame, the disparity sign), not training
-               RGBD -> DP nor depth-masked metrics.
+               everywhere and the focus distance and focal length are placeholders, so these pairs serve what
+               needs no depth: real test pairs for a DP deblurring network (dp5k deblur evaluate) and the
+               check of left + right against the combined frame (measured at import: params.json "exposure").
+               They are not a training set for RGBD -> DP; dp5k evaluate leaves them out (it renders from depth).
       generic  your own data: SRC/optics.json and SRC[/<split>]/<scene>/{left,right,sharp[,depth,combined]}.<ext>.
 
     A malformed scene is reported with its file and skipped; the others are imported and the command then exits

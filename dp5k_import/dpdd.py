@@ -14,9 +14,10 @@ How these pairs live in format v1: depth.png is 0 (invalid) everywhere and coc.t
 reader accepts (``Pair.valid`` is all False). The f-number of the views is not in the files (EXIF is gone); the
 paper's capture used a wide aperture against f/22, recorded here as ``f_number`` 4 by default (``--f-number``),
 and the focus distance and focal length are unknown: they are written as placeholders the format needs (focus
-1000 mm, focal length 50 mm) with ``"optics_known": false`` in params.json. So a DPDD import can check what needs
-no depth, such as whether ``left + right`` matches the combined frame (recorded per pair in ``"exposure"``) and the
-sign of the L/R disparity, but it is not a training set for RGBD -> DP, nor for any metric masked by valid depth.
+1000 mm, focal length 50 mm) with ``"optics_known": false`` in params.json. So a DPDD import serves what needs no
+depth: real test pairs for a DP deblurring network, and whether ``left + right`` matches the combined frame
+(recorded per pair in ``"exposure"``); it is not a training set for RGBD -> DP, and ``dp5k evaluate`` (which renders
+from depth and masks by it) leaves its pairs out.
 """
 
 from __future__ import annotations

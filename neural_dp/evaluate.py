@@ -165,8 +165,12 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
     seconds = {n: 0.0 for n in names}
     out.mkdir(parents=True, exist_ok=True)
+    no_depth: list[str] = []
     for k, pid in enumerate(progress(ids, desc=f"evaluate {split}", unit="pair")):
         batch = collate_dp([ds[index[pid]]]).to(dev)
+        if not bool(batch.valid.any()):  # e.g. a DPDD import: the simulators render from depth, metrics mask by it
+            no_depth.append(pid)
+            continue
         views: dict[str, tuple[Tensor, Tensor]] = {}
         per_pair[pid] = {}
         for name, sim in sims.items():
@@ -180,20 +184,27 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
             views[name] = (left, right)
         if k < figures:
             save_figure(out / "figures" / f"{pid}.png", batch, views)
+    scored = [p for p in ids if p in per_pair]
+    if not scored:
+        raise BadInputError(f"no pair of split '{split}' has valid depth (a DPDD import has none): the simulators render "
+                            "from depth and the metrics are masked by it", where=root / "dataset.json")
+    if no_depth:
+        logger.warning("%s: %d pair(s) without valid depth left out: %s", root, len(no_depth), ", ".join(no_depth[:5]))
     means: dict[str, dict[str, float]] = {}
     for name in names:
-        vals = {key: [per_pair[p][name][key] for p in ids] for key in ("mae", "psnr", "ssim")}
+        vals = {key: [per_pair[p][name][key] for p in scored] for key in ("mae", "psnr", "ssim")}
         means[name] = {key: float(np.nanmean(v)) for key, v in vals.items()}
-        means[name]["pairs"] = float(len(ids))
-        means[name]["seconds_per_pair"] = seconds[name] / len(ids)
+        means[name]["pairs"] = float(len(scored))
+        means[name]["seconds_per_pair"] = seconds[name] / len(scored)
     table = markdown_table(means)
     report: dict[str, Any] = {
-        "dataset": str(root), "split": split, "pairs": ids, "simulators": names,
+        "dataset": str(root), "split": split, "pairs": scored, "pairs_without_depth": no_depth, "simulators": names,
         "checkpoint": None if checkpoint is None else str(checkpoint), "device": str(dev),
         "metric_definitions": "masked MAE/PSNR/SSIM (neural_dp.metrics), mean of left and right view, mean over pairs",
         "fitted_parameters": fitted, "means": means, "per_pair": per_pair,
     }
     write_json_atomic(out / "metrics.json", report)
     with atomic_path(out / "table.md") as tmp:
-        tmp.write_text(f"Split '{split}' of {root.name}, {len(ids)} pairs.\n\n" + table)
+        tmp.write_text(f"Split '{split}' of {root.name}, {len(scored)} pairs"
+                       + (f" ({len(no_depth)} without valid depth left out)" if no_depth else "") + ".\n\n" + table)
     return EvalResult(means, out, table)
