@@ -8,14 +8,7 @@ pair by pair, and reports a malformed scene without losing the others. :data:`IM
 name (dp5k release, Sdirt DP119, DPDD, generic folders); docs/data-format.md gives each source layout.
 """
 
-from .capture import (
-           Capture,
-           SceneSource,
-           decode_curve,
-           linear_to_srgb,
-           read_rgb8,
-           srgb_to_linear,
-)
+from .capture import Capture, SceneSource, decode_curve, read_rgb8
 from .dp5k_release import dp5k_sources
 from .dpdd import dpdd_sources
 from .exposure import Exposure, measure_exposure
@@ -34,11 +27,9 @@ __all__ = [
            "dpdd_sources",
            "generic_sources",
            "import_dataset",
-           "linear_to_srgb",
            "measure_exposure",
            "read_rgb8",
            "sdirt_captures",
            "sdirt_sources",
-           "srgb_to_linear",
            "write_imported",
 ]

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import read_image_raw
+from dp5k_common.transfer import srgb_to_linear
 
 F32 = NDArray[np.float32]
 
@@ -70,23 +71,10 @@ class SceneSource:
     load: Callable[[], Iterator[Capture]]
 
 
-def srgb_to_linear(values01: NDArray[np.floating]) -> F32:
-    """IEC 61966-2-1 inverse transfer: sRGB-encoded values in [0, 1] (or uint8) -> linear [0, 1]."""
-    c = np.asarray(values01)
-    c = c.astype(np.float32) / 255.0 if c.dtype == np.uint8 else c.astype(np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(linear01: NDArray[np.floating]) -> F32:
-    """IEC 61966-2-1 forward transfer (for writing test layouts and previews): linear [0, 1] -> sRGB [0, 1]."""
-    c = np.clip(np.asarray(linear01, dtype=np.float32), 0.0, 1.0)
-    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
-
-
 def decode_curve(values01: NDArray[np.floating], curve: str) -> F32:
     """Undo the transfer curve ``curve`` (one of :data:`CURVES`) of values scaled to [0, 1]."""
     if curve == "srgb":
-        return srgb_to_linear(values01)
+        return srgb_to_linear(values01).astype(np.float32, copy=False)
     if curve == "linear":
         return np.asarray(values01, dtype=np.float32)
     raise BadInputError(f"unknown transfer curve {curve!r} (known: {', '.join(CURVES)})")

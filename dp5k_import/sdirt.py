@@ -25,7 +25,9 @@ import numpy as np
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import read_image_raw
 
-from .capture import Capture, SceneSource, read_rgb8, same_size, srgb_to_linear
+from dp5k_common.transfer import srgb_to_linear
+
+from .capture import Capture, SceneSource, read_rgb8, same_size
 
 SDIRT_FOCUS_MM = 1000.0
 SDIRT_F_NUMBER = 4.0

@@ -49,6 +49,7 @@ from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.io import read_image_raw, read_json
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.progress import progress
+from dp5k_common.transfer import srgb_to_linear
 
 from .batch import DPBatch
 from .simulators.registry import get_simulator
@@ -94,11 +95,6 @@ class Frame:
     depth_mm: np.ndarray
     fx_px: float
     fy_px: float
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
 def load_frame(folder: Path, encoding: str = "srgb", depth_scale: float = 1.0) -> Frame:

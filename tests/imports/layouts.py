@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from dp5k_common.dataset import DatasetReader
-from dp5k_import import linear_to_srgb
+from dp5k_common.transfer import linear_to_srgb
 
 VIEW_SCALE = 1.6
 """Each release view is written at this multiple of its format-v1 value (DPP writes full-brightness views)."""
