@@ -112,7 +112,9 @@ def synthesize_command(in_dir: Path, out_dir: Path, simulator: str, checkpoint: 
                        device: str) -> None:
     """Turn RGBD frames IN_DIR/<frame>/{image.png, depth.png|depth.npy, intrinsics.json} into a DP dataset OUT_DIR.
 
-    Resumable: frames already in OUT_DIR are skipped.
+    Resumable: frames already in OUT_DIR are skipped. Sharded over processes or machines with
+    torchrun --nproc_per_node N -m dp5k_cli synthesize IN_DIR OUT_DIR ...
+    (each rank converts every N-th frame; rank 0 writes the index once all are done).
     """
     from .synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
 
@@ -123,5 +125,6 @@ def synthesize_command(in_dir: Path, out_dir: Path, simulator: str, checkpoint: 
         depth_scale=depth_scale, batch_size=batch_size, seed=seed, device=device,
     )
     summary = synthesize(in_dir, out_dir, cfg)
-    click.echo(f"{out_dir}: wrote {summary['written']} pair(s), skipped {summary['skipped']} already done; "
+    rank = f" (rank {summary['rank']} of {summary['world_size']})" if summary["world_size"] > 1 else ""
+    click.echo(f"{out_dir}{rank}: wrote {summary['written']} pair(s), skipped {summary['skipped']} already done; "
                f"{summary['pairs']} pair(s) in the dataset")

@@ -26,6 +26,15 @@ Per frame:
 Output is a format-v1 dataset (one pair per frame, scene = frame, whole frames assigned to
 train/val/test with :func:`~dp5k_common.dataset.split_scenes`). Finished pairs are kept: a second run
 skips them (resume), and the random draws of a frame depend only on ``(seed, frame name)``.
+
+**Sharded** (``torchrun --nproc_per_node N -m dp5k_cli synthesize IN OUT ...``, any number of nodes): rank
+``r`` of ``N`` takes every N-th frame of the sorted list (:func:`dp5k_common.sharding.shard`), so each
+frame belongs to exactly one rank and a restarted rank resumes its own share. The split assignment is
+computed from *all* frame names, so it does not depend on the rank count. Only rank 0 writes
+``dataset.json``: after each of its batches (listing the pairs on disk, as a single process does) and a
+last time after a barrier (a gloo process group) that every rank reaches once its share is done, so the
+final index equals a single-process run's whatever order the ranks finish in. A crashed rank makes
+torchrun stop the others; running the same command again resumes every share.
 """
 
 from __future__ import annotations
@@ -36,22 +45,27 @@ import math
 import os
 import re
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 from dp5k_common.dataset import DatasetReader, PairParams, split_scenes, write_index, write_pair
 from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.io import read_image_raw, read_json
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.progress import progress
+from dp5k_common.sharding import RankInfo, rank_info, shard
 from dp5k_common.transfer import srgb_to_linear
 
 from .batch import DPBatch
+from .distributed import resolve_device
 from .simulators.registry import get_simulator
 
 logger = logging.getLogger(__name__)
@@ -59,6 +73,8 @@ logger = logging.getLogger(__name__)
 PAPER_F_NUMBERS: tuple[float, ...] = (1.8, 2.0, 2.8, 4.0, 5.6)
 FOCUS_WINDOW_PX = (60, 40)
 """(width, height) of the focus window (Sec. 5.3.1)."""
+RANK_WAIT = timedelta(hours=24)
+"""How long a rank that finished its share waits at the closing barrier for the slowest rank."""
 
 
 @dataclass(frozen=True)
@@ -209,14 +225,19 @@ def _frame_rng(seed: int, name: str) -> np.random.Generator:
 
 
 def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cfg: SynthConfig) -> dict[str, Any]:
-    """Convert every frame folder of ``in_dir`` into a pair of the dataset ``out_dir`` (resumable).
+    """Convert every frame folder of ``in_dir`` into a pair of the dataset ``out_dir`` (resumable, shardable).
+
+    Under torchrun (``RANK`` / ``WORLD_SIZE`` set) this process converts only its share of the frames; see
+    the module docstring.
 
     Returns:
-        Summary ``{"written": n, "skipped": n, "failed": {frame: error}, "pairs": n_total}``.
+        Summary ``{"written": n, "skipped": n, "failed": {frame: error}, "pairs": n_total, "rank": r,
+        "world_size": N}``; written / skipped / failed count this rank's share, pairs the whole dataset.
 
     Raises:
         BadInputError: ``in_dir`` has no frame folders, or bad options.
-        PartialFailureError: some frames failed (the others were written; the index lists them).
+        PartialFailureError: some frames of this rank's share failed (the others were written; the index
+            lists every pair written by any rank).
     """
     src, out = Path(in_dir), Path(out_dir)
     if not src.is_dir():
@@ -226,18 +247,34 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         raise BadInputError("no frame folders (expected IN/<frame>/image.png, depth, intrinsics.json)", where=src)
     if not cfg.f_numbers or any(n <= 0 for n in cfg.f_numbers):
         raise BadInputError(f"f-numbers must be positive, got {cfg.f_numbers}", where="synthesize")
-    sim = get_simulator(cfg.simulator, cfg.checkpoint).to(cfg.device)
+    info = rank_info()
+    with _rank_group(info):
+        summary = _synthesize_share(out, frames, shard(frames, info), info, cfg)
+        _wait_for_all_ranks(info)
+        if info.is_main:
+            _write_index(out, frames, _split_of(frames, cfg.seed), cfg)
+        _wait_for_all_ranks(info)
+    summary["pairs"] = len(DatasetReader(out).ids())
+    failed = summary["failed"]
+    if failed:
+        share = f" of rank {info.rank}'s share" if info.enabled else ""
+        raise PartialFailureError(
+            f"{len(failed)} of {len(frames)} frame(s){share} failed (first: {next(iter(failed.values()))}); "
+            "the rest were written",
+            where=src,
+        )
+    return summary
+
+
+def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], info: RankInfo, cfg: SynthConfig) -> dict[str, Any]:
+    """Write the pairs of this rank's frames ``mine`` that are not on disk yet; rank 0 keeps the index current."""
+    device = str(resolve_device(cfg.device, int(os.environ.get("LOCAL_RANK", "0"))))
+    sim = get_simulator(cfg.simulator, cfg.checkpoint).to(device)
     sim.eval()
     out.mkdir(parents=True, exist_ok=True)
-    scene_split = split_scenes([f.name for f in frames], seed=cfg.seed)
-    split_of = {s: name for name, scenes in scene_split.items() for s in scenes}
-
-    def pair_id(frame: str) -> str:
-        safe = re.sub(r"[^A-Za-z0-9._-]", "_", frame)
-        return safe if safe[0].isalnum() else "f" + safe
-
-    done = {f.name for f in frames if (out / "pairs" / pair_id(f.name) / "params.json").is_file()}
-    todo = [f for f in frames if f.name not in done]
+    split_of = _split_of(frames, cfg.seed)
+    done = {f.name for f in mine if (out / "pairs" / pair_id(f.name) / "params.json").is_file()}
+    todo = [f for f in mine if f.name not in done]
     failed: dict[str, str] = {}
     written = 0
     pending: list[tuple[Frame, PairParams, np.ndarray]] = []
@@ -248,7 +285,7 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         for item in pending:
             groups.setdefault(item[0].image.shape[:2], []).append(item)
         for items in groups.values():
-            batch = _make_batch(items, cfg.device)
+            batch = _make_batch(items, device)
             with torch.no_grad():
                 left, right = sim(batch)
             for k, (frame, params, coc) in enumerate(items):
@@ -257,9 +294,11 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
                            coc_px=np.nan_to_num(coc, nan=0.0), overwrite=True)
                 written += 1
         pending.clear()
-        _write_index(out, frames, split_of, pair_id, cfg)
+        if info.is_main:  # one writer of dataset.json; the other ranks' pairs appear in it as they land
+            _write_index(out, frames, split_of, cfg)
 
-    for folder in progress(todo, desc="synthesize", unit="frame"):
+    desc = f"synthesize (rank {info.rank}/{info.world_size})" if info.enabled else "synthesize"
+    for folder in progress(todo, desc=desc, unit="frame"):
         try:
             frame = load_frame(folder, cfg.encoding, cfg.depth_scale)
             rng = _frame_rng(cfg.seed, frame.name)
@@ -287,14 +326,38 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         if len(pending) >= cfg.batch_size:
             flush()
     flush()
-    summary = {"written": written, "skipped": len(done), "failed": failed,
-               "pairs": len(DatasetReader(out).ids())}
-    if failed:
-        raise PartialFailureError(
-            f"{len(failed)} of {len(frames)} frame(s) failed (first: {next(iter(failed.values()))}); the rest were written",
-            where=src,
-        )
-    return summary
+    return {"written": written, "skipped": len(done), "failed": failed, "rank": info.rank,
+            "world_size": info.world_size}
+
+
+def pair_id(frame: str) -> str:
+    """The dataset pair id of a frame folder name (characters outside ``[A-Za-z0-9._-]`` become ``_``)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", frame)
+    return safe if safe[0].isalnum() else "f" + safe
+
+
+def _split_of(frames: Sequence[Path], seed: int) -> dict[str, str]:
+    """Frame name -> split, from all frames (never one rank's share, so any rank count gives the same split)."""
+    scene_split = split_scenes([f.name for f in frames], seed=seed)
+    return {s: name for name, scenes in scene_split.items() for s in scenes}
+
+
+@contextmanager
+def _rank_group(info: RankInfo) -> Iterator[None]:
+    """A gloo process group for the closing barriers when sharded (torchrun's rendezvous); nothing alone."""
+    if not info.enabled or dist.is_initialized():
+        yield
+        return
+    dist.init_process_group("gloo", rank=info.rank, world_size=info.world_size, timeout=RANK_WAIT)
+    try:
+        yield
+    finally:
+        dist.destroy_process_group()
+
+
+def _wait_for_all_ranks(info: RankInfo) -> None:
+    if info.enabled:
+        dist.barrier()
 
 
 def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: str) -> DPBatch:
@@ -319,7 +382,8 @@ def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: s
     ).to(device)
 
 
-def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], pair_id: Any, cfg: SynthConfig) -> None:
+def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], cfg: SynthConfig) -> None:
+    """dataset.json listing, in frame order, every frame whose pair is on disk, in its split."""
     splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
     for f in frames:
         pid = pair_id(f.name)

@@ -1,18 +1,25 @@
-"""DistributedDataParallel under torchrun: two CPU processes, gloo, two steps, then resume."""
+"""torchrun with two CPU processes (gloo): DistributedDataParallel training and resume; sharded synthesis."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from neural_dp.checkpoint import load_checkpoint
+from dp5k_common.dataset import DatasetReader
 from dp5k_testing.tiny_dataset import make_tiny_dataset
+from neural_dp.checkpoint import load_checkpoint
+from neural_dp.synthesize import SynthConfig, synthesize
+
+from .test_synthesize import _frames
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -44,3 +51,63 @@ def test_torchrun_two_processes_gloo_train_and_resume(tmp_path: Path) -> None:
     assert state2["epoch"] == 2 and state2["step"] == 2
     changed = any(not torch.equal(state["model"][k], state2["model"][k]) for k in state["model"])
     assert changed
+
+
+def _torchrun_synthesize(src: Path, out: Path) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "dp5k_cli", "-q",
+           "synthesize", str(src), str(out), "--simulator", "disk", "--depth-scale", "1000", "--batch-size", "2"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "DP5K_PROGRESS": "0"}
+    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+
+
+def _written_per_rank(stdout: str) -> dict[int, int]:
+    """Rank -> pairs it wrote, from each rank's closing line '... (rank R of 2): wrote K pair(s), ...'."""
+    found = re.findall(r"\(rank (\d) of 2\): wrote (\d+) pair", stdout)
+    return {int(r): int(k) for r, k in found}
+
+
+def _assert_same_dataset(a: Path, b: Path) -> None:
+    """Same index (split assignment and order), same parameters and same images, pair by pair."""
+    assert json.loads((a / "dataset.json").read_text()) == json.loads((b / "dataset.json").read_text())
+    ra, rb = DatasetReader(a), DatasetReader(b)
+    assert ra.ids() == rb.ids()
+    for pid in ra.ids():
+        assert (a / "pairs" / pid / "params.json").read_text() == (b / "pairs" / pid / "params.json").read_text()
+        pa, pb = ra.load(pid), rb.load(pid)
+        for key in ("sharp", "left", "right", "depth_mm"):
+            np.testing.assert_array_equal(getattr(pa, key), getattr(pb, key), err_msg=f"{pid} {key}")
+
+
+@pytest.mark.distributed
+@pytest.mark.slow
+def test_torchrun_synthesize_writes_each_frame_once_and_equals_one_process(tmp_path: Path) -> None:
+    _frames(tmp_path / "in", n=5)
+    one = synthesize(tmp_path / "in", tmp_path / "one", SynthConfig(simulator="disk", depth_scale=1000.0, batch_size=2))
+    assert one["written"] == 5 and one["world_size"] == 1
+    proc = _torchrun_synthesize(tmp_path / "in", tmp_path / "two")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    # frames 0, 2, 4 to rank 0 and 1, 3 to rank 1: each written by exactly one rank
+    assert _written_per_rank(proc.stdout) == {0: 3, 1: 2}
+    _assert_same_dataset(tmp_path / "one", tmp_path / "two")
+
+
+@pytest.mark.distributed
+@pytest.mark.slow
+def test_torchrun_synthesize_resumes_each_share_without_rewriting(tmp_path: Path) -> None:
+    """A run that stopped part-way (two pairs of different ranks' shares and the index missing) is finished by
+    a 2-rank run: only the missing pairs are written, the finished ones are left untouched."""
+    _frames(tmp_path / "in", n=5)
+    cfg = SynthConfig(simulator="disk", depth_scale=1000.0, batch_size=2)
+    synthesize(tmp_path / "in", tmp_path / "ref", cfg)
+    shutil.copytree(tmp_path / "ref", tmp_path / "out")
+    for pid in ("frame_01", "frame_02"):  # one of rank 1's frames, one of rank 0's
+        shutil.rmtree(tmp_path / "out" / "pairs" / pid)
+    (tmp_path / "out" / "dataset.json").unlink()
+    kept = {pid: (tmp_path / "out" / "pairs" / pid / "params.json").stat().st_mtime_ns
+            for pid in ("frame_00", "frame_03", "frame_04")}
+    proc = _torchrun_synthesize(tmp_path / "in", tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert _written_per_rank(proc.stdout) == {0: 1, 1: 1}
+    for pid, mtime in kept.items():
+        assert (tmp_path / "out" / "pairs" / pid / "params.json").stat().st_mtime_ns == mtime, pid
+    _assert_same_dataset(tmp_path / "ref", tmp_path / "out")
