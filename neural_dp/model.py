@@ -68,9 +68,10 @@ class ModelConfig:
     See the module docstring; the reach of the kernels grows from K // 2 to about (K // 2 + 1/2) 2**n px."""
     tile_px: int = 512
     """Inference tile side (bounds memory at full resolution); 0 disables tiling."""
-    tile_margin_px: int = 96
-    """Context added around each inference tile and discarded after (>= the U-Net's reach, about 94 px at
-    4 levels, makes tiled output equal the whole-image output)."""
+    tile_margin_px: int = 0
+    """Context (px) added around each inference tile and discarded after. At least the network's receptive
+    radius (:attr:`UNetKPN.receptive_radius_px`: 122 px at 4 levels) is always used, rounded up to a multiple
+    of ``2 ** levels``, so the tiled output equals the whole-image output; 0 = exactly that."""
 
 
 def _norm(kind: str, ch: int) -> nn.Module:
@@ -153,6 +154,25 @@ class UNetKPN(nn.Module):
         r = self.cfg.kernel_size // 2
         d = max(self.dilations, default=1)
         return r * d + (d // 2 if d > 1 else 0)
+
+    @property
+    def receptive_radius_px(self) -> int:
+        """How far (px, along either axis) from an output pixel the input can change its value.
+
+        The larger of the kernels' reach on the sharp image (:attr:`reach_px`) and the U-Net trunk's worst-case
+        receptive-field radius. Encoder level k (pixels of ``2**k`` px) widens a pixel's footprint by ``a_k``:
+        ``a_0 = 2`` (two 3 x 3 convs), ``a_{k+1} = a_k + 2 * 2**(k+1)`` (2 x 2 max-pool, two convs). Decoder
+        level k reads the bilinear upsampling of level k + 1 (coarse neighbours up to ``2**(k+1)`` px beyond a
+        pixel's footprint) beside the skip: ``d_k = max(d_{k+1} + 2**(k+1), a_k) + 2 * 2**k`` from
+        ``d_levels = a_levels``. 26 px at 2 levels, 58 at 3, 122 at 4.
+        """
+        a = [2]
+        for k in range(1, self.cfg.levels + 1):
+            a.append(a[-1] + 2 * 2**k)
+        d = a[-1]
+        for k in reversed(range(self.cfg.levels)):
+            d = max(d + 2 ** (k + 1), a[k]) + 2 * 2**k
+        return max(d, self.reach_px)
 
     def _trunk(self, x: Tensor) -> Tensor:
         """U-Net features at full resolution, (B, base_channels, H, W)."""

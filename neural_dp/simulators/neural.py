@@ -63,7 +63,8 @@ class NeuralDPSimulator(DPSimulator):
         inputs = model_inputs(batch, self.cfg.coc_scale_px)
         H, W = batch.sharp.shape[-2:]
         tile = self.cfg.tile_px
-        if self.training or tile <= 0 or (H <= tile and W <= tile):
+        whole_image_norm = self.cfg.norm == "group"  # GroupNorm's statistics span the image: tiles would differ
+        if self.training or whole_image_norm or tile <= 0 or (H <= tile and W <= tile):
             return self.net(batch.sharp, inputs)
         return self._forward_tiled(batch.sharp, inputs, tile, self.cfg.tile_margin_px)
 
@@ -71,12 +72,21 @@ class NeuralDPSimulator(DPSimulator):
         """Predict tile by tile with ``margin`` px of context; peak memory is set by the tile, not the image.
 
         Tile origins and margins are multiples of the U-Net's down-sampling factor, so every tile sees the
-        same pooling grid as the whole image; with a margin beyond the network's reach (and BatchNorm in
-        eval mode, which is local) the stitched result equals the whole-image result.
+        same pooling grid as the whole image. The margin is raised to the network's receptive radius
+        (:attr:`~neural_dp.model.UNetKPN.receptive_radius_px`), so (with BatchNorm in eval mode, which is
+        local) the stitched result equals the whole-image result.
+
+        Args:
+            sharp: (B, 3, H, W) linear image. inputs: (B, 5, H, W) network input.
+            tile: tile side, px (rounded down to a multiple of ``2 ** levels``).
+            margin: context, px (raised to the receptive radius, rounded up to a multiple of ``2 ** levels``).
+
+        Returns:
+            (left, right), each (B, 3, H, W).
         """
         m = self.net.multiple
         tile = max(m, tile // m * m)
-        margin = -(-margin // m) * m
+        margin = -(-max(margin, self.net.receptive_radius_px) // m) * m
         H, W = sharp.shape[-2:]
         left = torch.empty_like(sharp)
         right = torch.empty_like(sharp)
