@@ -112,9 +112,11 @@ def synthesize_command(in_dir: Path, out_dir: Path, simulator: str, checkpoint: 
                        device: str) -> None:
     """Turn RGBD frames IN_DIR/<frame>/{image.png, depth.png|depth.npy, intrinsics.json} into a DP dataset OUT_DIR.
 
-    Resumable: frames already in OUT_DIR are skipped. Sharded over processes or machines with
+    Resumable: frames already in OUT_DIR are skipped. Sharded over processes or machines (each rank
+    converts every N-th frame and resumes its own share; rank 0 writes the index once all are done):
+
+    \b
     torchrun --nproc_per_node N -m dp5k_cli synthesize IN_DIR OUT_DIR ...
-    (each rank converts every N-th frame; rank 0 writes the index once all are done).
     """
     from .synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
 
