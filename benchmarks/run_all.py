@@ -23,6 +23,7 @@ BENCHES: dict[str, list[str]] = {
     "studio": ["bench_studio.py"],
     "process": ["bench_process.py"],
     "simulators": ["bench_simulators.py"],
+    "neural": ["bench_neural.py"],
     "diagnose": ["bench_diagnose.py", "--quick"],
 }
 
