@@ -348,7 +348,11 @@ def _rank_group(info: RankInfo) -> Iterator[None]:
     if not info.enabled or dist.is_initialized():
         yield
         return
-    dist.init_process_group("gloo", rank=info.rank, world_size=info.world_size, timeout=RANK_WAIT)
+    try:
+        dist.init_process_group("gloo", rank=info.rank, world_size=info.world_size, timeout=RANK_WAIT)
+    except (ValueError, RuntimeError) as exc:
+        raise BadInputError(f"RANK={info.rank} of WORLD_SIZE={info.world_size} but no torchrun rendezvous "
+                            f"(start with torchrun, or unset RANK): {exc}", where="environment") from exc
     try:
         yield
     finally:

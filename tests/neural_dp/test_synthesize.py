@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from dp5k_cli import main
 from dp5k_common.dataset import DatasetReader
-from dp5k_common.errors import PartialFailureError
+from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from neural_dp.synthesize import SynthConfig, random_focus, synthesize
 
@@ -119,3 +119,17 @@ def test_base_simulator_reads_rgbd_frames_as_all_in_focus(tmp_path: Path) -> Non
     split = next(name for name in reader.splits if reader.ids(name))
     item_batch = collate_dp([DPPairDataset(tmp_path / "out", split)[0]])
     assert item_batch.sharp_f_number is not None and item_batch.sharp_f_number.tolist() == [0.0]
+
+
+def test_rank_without_torchrun_rendezvous_is_a_one_line_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """RANK / WORLD_SIZE set by hand (no MASTER_ADDR): a clear error before any frame is written."""
+    _frames(tmp_path / "in", n=2)
+    for key in ("MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    res = CliRunner().invoke(main, ["-q", "synthesize", str(tmp_path / "in"), str(tmp_path / "out"),
+                                    "--simulator", "disk", "--depth-scale", "1000"])
+    assert res.exit_code == BadInputError.exit_code, res.output
+    assert "torchrun" in res.output and "RANK=1" in res.output
+    assert not (tmp_path / "out" / "pairs").exists()
