@@ -7,7 +7,7 @@ import torch
 
 from neural_dp.batch import DPBatch
 from neural_dp.model import ModelConfig, UNetKPN
-from neural_dp.simulators.neural import NeuralDPSimulator
+from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
 
 
 def _batch(H: int, W: int) -> DPBatch:
@@ -57,7 +57,7 @@ def test_tiled_paper_depth_network_equals_whole_image() -> None:
     b = _batch(330, 340)  # not multiples of 16: the edge tiles are padded like the whole image
     with torch.no_grad():
         tiled = sim(b)
-        whole = sim.net(b.sharp, _inputs(sim, b))
+        whole = sim.net(b.sharp, model_inputs(b, sim.cfg.coc_scale_px))
     assert float((whole[0] - b.sharp).abs().max()) > 0.5  # the network does change the image
     torch.testing.assert_close(tiled[0], whole[0], atol=1e-4, rtol=0)
     torch.testing.assert_close(tiled[1], whole[1], atol=1e-4, rtol=0)
@@ -73,11 +73,5 @@ def test_group_norm_network_runs_untiled() -> None:
     b = _batch(96, 128)
     with torch.no_grad():
         out = sim(b)
-        whole = sim.net(b.sharp, _inputs(sim, b))
+        whole = sim.net(b.sharp, model_inputs(b, sim.cfg.coc_scale_px))
     torch.testing.assert_close(out[0], whole[0], atol=1e-6, rtol=0)
-
-
-def _inputs(sim: NeuralDPSimulator, b: DPBatch) -> torch.Tensor:
-    from neural_dp.simulators.neural import model_inputs
-
-    return model_inputs(b, sim.cfg.coc_scale_px)
