@@ -44,6 +44,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import zlib
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -275,6 +276,7 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
     split_of = _split_of(frames, cfg.seed)
     done = {f.name for f in mine if (out / "pairs" / pair_id(f.name) / "params.json").is_file()}
     todo = [f for f in mine if f.name not in done]
+    _remove_stale_temporaries(out, todo)
     failed: dict[str, str] = {}
     written = 0
     pending: list[tuple[Frame, PairParams, np.ndarray]] = []
@@ -328,6 +330,24 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
     flush()
     return {"written": written, "skipped": len(done), "failed": failed, "rank": info.rank,
             "world_size": info.world_size}
+
+
+def _remove_stale_temporaries(out: Path, todo: Sequence[Path]) -> None:
+    """Delete the half-written temporary folders that a killed run left for the frames this rank will write.
+
+    :func:`~dp5k_common.dataset.write_pair` builds a pair in ``pairs/.tmp-<pair_id>-<8 random characters>``
+    and renames it when complete. Only this rank writes its frames, so their temporaries are its own; the
+    exact name pattern keeps another pair's (``<pair_id>-x``) out of reach.
+    """
+    pairs = out / "pairs"
+    if not pairs.is_dir():
+        return
+    for f in todo:
+        stale = re.compile(rf"\.tmp-{re.escape(pair_id(f.name))}-[a-z0-9_]{{8}}")
+        for tmp in pairs.glob(f".tmp-{pair_id(f.name)}-*"):
+            if tmp.is_dir() and stale.fullmatch(tmp.name):
+                logger.info("removing %s, left by an interrupted run", tmp)
+                shutil.rmtree(tmp)
 
 
 def pair_id(frame: str) -> str:

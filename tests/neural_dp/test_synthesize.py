@@ -65,9 +65,14 @@ def test_resume_skips_finished_frames_and_is_deterministic(tmp_path: Path) -> No
     assert again["written"] == 0 and again["skipped"] == 3
     import shutil
 
-    shutil.rmtree(tmp_path / "out" / "pairs" / "frame_02")  # as if interrupted before this frame
+    shutil.rmtree(tmp_path / "out" / "pairs" / "frame_02")  # as if killed while writing this frame:
+    half_written = tmp_path / "out" / "pairs" / ".tmp-frame_02-k1ll3d_x"
+    (half_written / "x").mkdir(parents=True)
+    not_ours = tmp_path / "out" / "pairs" / ".tmp-frame_02-x-k1ll3d_x"  # a pair 'frame_02-x' being written
+    not_ours.mkdir()
     third = synthesize(tmp_path / "in", tmp_path / "out", cfg)
     assert third["written"] == 1
+    assert not half_written.exists() and not_ours.exists()
     assert json.loads((tmp_path / "out" / "pairs" / "frame_02" / "params.json").read_text()) == before
 
 
