@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import zlib
 from pathlib import Path
 
 import click
@@ -11,15 +10,6 @@ import click
 from dp5k_common.errors import BadInputError, DatasetFormatError
 
 log = logging.getLogger(__name__)
-
-
-def _sim_scene(scene: str) -> str | int:
-    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
-    from dp5k_studio import PRESETS
-
-    if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
-        return scene
-    return zlib.crc32(scene.encode()) % 100000
 
 
 @click.command("capture")
@@ -56,62 +46,11 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
         if sim:
             click.echo("simulated rig: bodies and raw sizes come from the studio at run time")
         return
-    scale: float | str = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
-    if sim:
-        _capture_sim(scene, out, rig, scale, seed)
-    else:
-        _capture_real(scene, out, rig)
+    from .session_run import SimSpec, capture_scene
 
-
-def _capture_sim(scene: str, out: Path, rig, scale, seed: int) -> None:  # type: ignore[no-untyped-def]
-    from .capture import RigDevices, run_scene
-    from .devices import open_bodies
-    from .escvp21 import EpsonProjector, EscVp21Timing
-    from .rawsession import RawSessionWriter
-    from .sim.world import StudioOptics, make_sim_rig
-
-    sim = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(_sim_scene(scene), proj, scale, seed), seed=seed)
-    try:
-        writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True, "studio": {"scene": str(_sim_scene(scene)), "scale": scale, "seed": seed}})
-        projector = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.05))
-        bodies = open_bodies(sim.rig, backend=sim.backend)
-        devices = RigDevices(bodies, projector, sim.window, sim.optics)
-        try:
-            n = run_scene(sim.rig, devices, writer)
-        finally:
-            devices.close()
-        gt = writer.dir / "ground_truth"
-        if not gt.exists():
-            sim.optics.write_ground_truth(gt)
-    finally:
-        sim.close()
-    click.echo(f"{writer.dir}: complete ({n} files captured now)")
-
-
-def _capture_real(scene: str, out: Path, rig) -> None:  # type: ignore[no-untyped-def]
-    from .capture import OperatorBoard, RigDevices, run_scene
-    from .devices import open_bodies
-    from .display import PatternWindow
-    from .escvp21 import EpsonProjector
-    from .rawsession import RawSessionWriter
-
-    if not all(b.serial for b in rig.bodies) and len(rig.bodies) == 2:
-        log.warning("rig.toml gives no body serials: bodies are taken in USB order")
-    writer = RawSessionWriter(out, scene, rig, "CR2", extra={"simulated": False})
-    projector = EpsonProjector(rig.projector.port)
-    window = PatternWindow(rig.projector.width, rig.projector.height, rig.projector.display_index, rig.projector.settle_s)
-    try:
-        bodies = open_bodies(rig)
-    except BaseException:
-        projector.close()
-        window.close()
-        raise
-    devices = RigDevices(bodies, projector, window, OperatorBoard(lambda msg: click.prompt(msg, default="", show_default=False)))
-    try:
-        n = run_scene(rig, devices, writer)
-    finally:
-        devices.close()
-    click.echo(f"{writer.dir}: complete ({n} files captured now)")
+    spec = SimSpec(float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale, seed) if sim else None
+    result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+    click.echo(f"{result.dir}: complete ({result.written} files captured now)")
 
 
 @click.command("devices")
