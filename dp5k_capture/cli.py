@@ -13,9 +13,9 @@ log = logging.getLogger(__name__)
 
 
 @click.command("capture")
-@click.option("--scene", required=True, help="Scene name (folder under --out): letters, digits, '.', '_', '-'.")
+@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("raw"), show_default=True,
-              help="Raw session root; the scene goes to OUT/SCENE.")
+              help="Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is writable); an unwritable OUT is refused before any device is touched.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
@@ -28,9 +28,12 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
     Resumes an interrupted scene; never overwrites a captured file; errors name the device and step.
     """
     from .capture import describe_plan
+    from .paths import check_out_dir, check_scene_name
     from .rig import RigConfig, load_rig
     from .rawsession import FORMAT
 
+    check_scene_name(scene)
+    check_out_dir(out, create=False)
     rig = load_rig(rig_path) if rig_path else RigConfig()
     if dry_run:
         for line in describe_plan(rig, scene, out, "dng" if sim else "CR2"):

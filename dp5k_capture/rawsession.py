@@ -22,6 +22,7 @@ from typing import Any
 from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 from dp5k_common.io import read_json, sha256_file, write_json_atomic
 
+from .paths import check_scene_name
 from .patterns import projection_count
 from .rig import RigConfig
 
@@ -80,18 +81,18 @@ class RawSessionWriter:
 
     Args:
         root: the ``--out`` folder (``RAW``).
-        scene: scene name (folder-safe).
+        scene: scene name (one safe folder name, :func:`~dp5k_capture.paths.check_scene_name`).
         rig: the rig (recorded in the manifest).
         ext: raw file extension (``CR2`` on the rig, ``dng`` from simulated bodies).
         extra: additional manifest keys (e.g. ``simulated``).
 
     Raises:
-        BadInputError: the scene is already complete (never overwritten), or its manifest is unreadable.
+        BadInputError: a hostile scene name, the scene is already complete (never overwritten), or its manifest
+            is unreadable.
     """
 
     def __init__(self, root: str | Path, scene: str, rig: RigConfig, ext: str, extra: dict[str, Any] | None = None) -> None:
-        if not scene or any(c not in "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-" for c in scene):
-            raise BadInputError(f"scene name {scene!r} must use letters, digits, '.', '_', '-'", where="--scene")
+        check_scene_name(scene)
         self.dir = Path(root) / scene
         self.scene = scene
         self.ext = ext

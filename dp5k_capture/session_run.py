@@ -22,6 +22,7 @@ from .capture import BoardPositioner, OperatorBoard, RigDevices, run_scene
 from .devices import open_bodies
 from .display import PatternWindow
 from .escvp21 import EpsonProjector, EscVp21Timing
+from .paths import check_out_dir, check_scene_name
 from .ptp.session import SessionConfig
 from .rawsession import RawSessionWriter
 from .rig import RigConfig
@@ -89,8 +90,11 @@ def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None 
         timing: EOS capture-loop bounds (default :class:`CaptureTiming`).
 
     Raises:
+        dp5k_common.errors.BadInputError: a hostile scene name or an unwritable ``out`` (before any device is touched).
         dp5k_common.errors.DP5KError: bad input, a device fault (naming the device and step), storage errors.
     """
+    check_scene_name(scene)
+    check_out_dir(Path(out), create=True)  # before any device is touched
     opener = _simulated if sim is not None else _real
     with opener(scene, Path(out), rig, sim, prompt) as r:
         devices = RigDevices({}, r.projector, r.window, r.board)
