@@ -104,15 +104,20 @@ def _shutter_text(s: float) -> str:
     return f"{s:g} s" if s >= 0.3 else f"1/{round(1 / s)} s"
 
 
-def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, check_dp: bool = True) -> int:
+def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, check_dp: bool = True,
+              before_complete: Callable[[Path], None] | None = None) -> int:
     """Capture (or resume) one scene. Returns the number of files written now.
 
     Errors name the device and the step (``cam1 (...): dp_f2.8: ...``); files completed before the
-    error are kept and the next run resumes after them.
+    error are kept and the next run resumes after them. ``before_complete(session_dir)`` runs after the
+    last shot and before the session is marked complete (the simulated rig writes ``ground_truth/`` there),
+    so an interruption in between leaves an incomplete session that the next run finishes.
     """
     shots = plan_scene(rig)
     todo = [(s, b.id) for s in shots for b in rig.bodies if not writer.done(b.id, s)]
     if not todo:
+        if before_complete is not None:
+            before_complete(writer.dir)
         writer.finish(rig)
         return 0
     proj = devices.projector
@@ -152,6 +157,8 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
         _step("blank projector", proj.name, proj.blank, True)
     finally:
         bar.close()
+    if before_complete is not None:
+        before_complete(writer.dir)
     writer.finish(rig)
     return written
 

@@ -270,4 +270,6 @@ def verify_session(scene_dir: str | Path, *, check_dual_pixel: bool = True, rig:
     for b in bodies:
         if b not in manifest.get("focus_point_px", {}):
             problems.append(f"{b}: no focus point recorded")
+    if manifest.get("simulated") and not (scene_dir / "ground_truth" / "truth.json").is_file():
+        problems.append("ground_truth/truth.json: missing (a simulated session carries its ground truth)")
     return VerifyReport(counts, problems, sum(counts.values()), total)

@@ -10,6 +10,9 @@ display, or the simulated rig) and in who places the ChArUco board (the operator
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import tempfile
 import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -29,6 +32,7 @@ from .rig import RigConfig
 
 log = logging.getLogger(__name__)
 
+GROUND_TRUTH_TMP_PREFIX = "ground_truth.partial."
 SIM_PROJECTOR_POLL_S = 0.05  # the simulated EB-U42 answers at once: poll its state faster than the real one
 
 
@@ -63,7 +67,7 @@ class _Rig:
     board: BoardPositioner
     writer: RawSessionWriter
     backend: Any = None
-    after_scene: Callable[[Path], None] | None = None
+    before_complete: Callable[[Path], None] | None = None
 
 
 def sim_studio_scene(scene: str) -> str | int:
@@ -73,6 +77,26 @@ def sim_studio_scene(scene: str) -> str | int:
     if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
         return scene
     return zlib.crc32(scene.encode()) % 100000
+
+
+def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
+    """``session_dir/ground_truth/`` from the simulated world, as one atomic folder rename (kept if present).
+
+    Written into a hidden temporary folder beside it and renamed, so an interruption leaves either no
+    ``ground_truth/`` or a whole one; leftovers of an interrupted write are removed on the next call.
+    """
+    final = Path(session_dir) / "ground_truth"
+    for stale in Path(session_dir).glob(f".{GROUND_TRUTH_TMP_PREFIX}*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    if final.is_dir():
+        return final
+    tmp = Path(tempfile.mkdtemp(prefix=f".{GROUND_TRUTH_TMP_PREFIX}", dir=session_dir))
+    try:
+        optics.write_ground_truth(tmp)
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
 
 
 def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None = None,
@@ -100,11 +124,9 @@ def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None 
         devices = RigDevices({}, r.projector, r.window, r.board)
         try:
             devices.bodies = open_bodies(r.rig, backend=r.backend, config=session, timing=timing)
-            written = run_scene(r.rig, devices, r.writer)
+            written = run_scene(r.rig, devices, r.writer, before_complete=r.before_complete)
         finally:
             devices.close()
-        if r.after_scene is not None:
-            r.after_scene(r.writer.dir)
     return CaptureResult(r.writer.dir, written)
 
 
@@ -134,14 +156,10 @@ def _simulated(scene: str, out: Path, rig: RigConfig, sim: SimSpec | None, promp
         writer = RawSessionWriter(out, scene, srig.rig, "dng", extra={
             "simulated": True, "studio": {"scene": str(studio_scene), "scale": sim.scale, "seed": sim.seed}})
         projector = EpsonProjector(srig.rig.projector.port, timing=EscVp21Timing(poll_s=SIM_PROJECTOR_POLL_S))
-
-        def ground_truth(session_dir: Path) -> None:
-            if not (session_dir / "ground_truth").exists():
-                srig.optics.write_ground_truth(session_dir / "ground_truth")
-
-        yield _Rig(srig.rig, projector, srig.window, srig.optics, writer, backend=srig.backend, after_scene=ground_truth)
+        yield _Rig(srig.rig, projector, srig.window, srig.optics, writer, backend=srig.backend,
+                   before_complete=lambda session_dir: write_ground_truth_once(srig.optics, session_dir))
     finally:
         srig.close()
 
 
-__all__ = ["CaptureResult", "SimSpec", "capture_scene", "sim_studio_scene"]
+__all__ = ["CaptureResult", "SimSpec", "capture_scene", "sim_studio_scene", "write_ground_truth_once"]

@@ -110,6 +110,20 @@ class FlatOptics:
                 "focus_distance_m": s.focus_distance_m, "sequence": s.sequence}
         return dng_bytes(main, aux if s.dual_pixel_raw else None, black, white, (2.0, 1.0, 1.5), meta)
 
+    def write_ground_truth(self, folder: Path) -> list[Path]:
+        """``ground_truth/`` of the flat world: ``camN_depth_mm.png`` (16-bit, mm; both bodies see the same
+        plane) and ``truth.json`` (scene ``flat``, raw size in px)."""
+        from dp5k_common.io import write_json_atomic, write_png16
+
+        folder = Path(folder)
+        depth_mm = np.rint(self.depth_m * 1000.0).astype(np.uint16)
+        written = []
+        for i in range(2):
+            write_png16(folder / f"cam{i}_depth_mm.png", depth_mm)
+            written.append(folder / f"cam{i}_depth_mm.png")
+        write_json_atomic(folder / "truth.json", {"scene": "flat", "raw_size_px": [self.w, self.h]})
+        return [*written, folder / "truth.json"]
+
 
 class StudioOptics:
     """The virtual studio as the bodies' world (``dp5k_studio``).
@@ -291,6 +305,8 @@ class StudioOptics:
                 np.save(tmp, np.asarray(gt["proj_xy"], dtype=np.float32))
             written.append(npy)
             rec = self.focus_m.get(i)
+            if rec is None:  # a resumed session whose shots were all taken before: the bodies did not refocus
+                rec = self.autofocus_m(self.serials[i], self.focus_points_px[i])
             truth["cameras"][f"cam{i}"] = {
                 "serial": self.serials[i], "K": gt["K"].tolist(), "dist": gt["dist"].tolist(), "R": gt["R"].tolist(),
                 "t": gt["t"].tolist(), "width": gt["width"], "height": gt["height"],

@@ -16,6 +16,7 @@ from dp5k_capture.escvp21 import EpsonProjector, EscVp21Timing, ProjectorError
 from dp5k_capture.ptp.errors import DisconnectedError
 from dp5k_capture.rawsession import CaptureStorageError, RawSessionWriter, verify_session
 from dp5k_capture.rig import RigConfig
+from dp5k_capture.session_run import write_ground_truth_once
 from dp5k_capture.sim.world import SimRig, make_sim_rig
 from dp5k_cli import main
 from dp5k_common.errors import DeviceError
@@ -34,7 +35,7 @@ def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None =
         bodies = open_bodies(sim.rig, backend=sim.backend, config=FAST_SESSION, timing=FAST)
         devices = RigDevices(bodies, proj, sim.window, sim.optics)
         try:
-            return run_scene(sim.rig, devices, writer), sim
+            return run_scene(sim.rig, devices, writer, before_complete=lambda d: write_ground_truth_once(sim.optics, d)), sim
         finally:
             devices.close()
     finally:
@@ -235,3 +236,33 @@ def test_projector_falls_silent_mid_scene_then_resume(tmp_path: Path) -> None:
     assert len(m["files"]) == 18 and all(f["kind"] != "sl" for f in m["files"])
     n, _ = _run(tmp_path)
     assert n == 110 - 18
+
+
+def test_ctrl_c_before_the_ground_truth_leaves_the_session_incomplete(tmp_path: Path) -> None:
+    """Ctrl-C between the last shot and ground_truth/: not complete, verify flags it, the re-run finishes it."""
+    sim = make_sim_rig(RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
+    try:
+        writer = RawSessionWriter(tmp_path, "s1", sim.rig, "dng", extra={"simulated": True})
+        proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01, default_s=0.5))
+        devices = RigDevices(open_bodies(sim.rig, backend=sim.backend, config=FAST_SESSION, timing=FAST), proj, sim.window, sim.optics)
+
+        def ctrl_c(session_dir: Path) -> None:
+            raise KeyboardInterrupt
+
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                run_scene(sim.rig, devices, writer, before_complete=ctrl_c)
+        finally:
+            devices.close()
+    finally:
+        sim.close()
+    m = json.loads((tmp_path / "s1/manifest.json").read_text())
+    assert len(m["files"]) == 110 and m["complete"] is False and not (tmp_path / "s1/ground_truth").exists()
+    res = CliRunner().invoke(main, ["verify", "--no-dp-check", str(tmp_path / "s1")])
+    assert res.exit_code == 4 and "ground_truth/truth.json: missing" in res.output
+    n, _ = _run(tmp_path)  # the re-run takes no shot, writes the ground truth, then marks the session complete
+    assert n == 0 and json.loads((tmp_path / "s1/manifest.json").read_text())["complete"] is True
+    assert (tmp_path / "s1/ground_truth/cam1_depth_mm.png").is_file()
+    assert not list((tmp_path / "s1").glob(".ground_truth*"))
+    res = CliRunner().invoke(main, ["verify", "--no-dp-check", str(tmp_path / "s1")])
+    assert res.exit_code == 0 and "OK: 110 files" in res.output
