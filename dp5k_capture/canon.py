@@ -123,13 +123,19 @@ class EosCamera:
         return self.info
 
     def close(self) -> None:
-        """Leave remote mode (event mode 0, remote mode 0). Never CloseSession on bodies that break on it."""
+        """Leave remote mode, also after Ctrl-C mid-transfer: Cancel the unfinished transaction and drain its
+        data, then SetEventMode(0) and SetRemoteMode(0) (each tried even if the other fails). Never
+        CloseSession on bodies that break on it."""
+        self.session.abort_unfinished()
+        for op, step in ((Op.EOS_SET_EVENT_MODE, "event mode off"), (Op.EOS_SET_REMOTE_MODE, "remote mode off")):
+            try:
+                self.session.transaction(op, (0,))
+            except DeviceError as exc:
+                log.warning("%s: %s failed: %s", self.name, step, exc)
         try:
-            self.session.transaction(Op.EOS_SET_EVENT_MODE, (0,))
-            self.session.transaction(Op.EOS_SET_REMOTE_MODE, (0,))
             self.session.close_session()
         except DeviceError as exc:
-            log.warning("%s: leaving remote mode failed: %s", self.name, exc)
+            log.warning("%s: CloseSession failed: %s", self.name, exc)
 
     # ------------------------------------------------------------------ events
     def poll_events(self) -> list[EosRecord]:

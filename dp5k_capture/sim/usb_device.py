@@ -4,7 +4,8 @@
 data and response containers on bulk IN, one USB transfer per container (a read never spans two). It also
 answers the Still Image class requests and string descriptors, and injects USB faults on request:
 disconnect after N bytes of bulk IN, stalls, DeviceBusy storms (via the body), short, garbled and
-malformed containers.
+malformed containers. Like a real body, it keeps what it was sending when its client dies: a new client
+first reads that stale half-sent data phase, until a Cancel (0x64) or Device Reset (0x66) clears it.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ class SimUsbPtpDevice:
         self.gone = False
         self.halted = False
         self.in_bytes = 0
+        self.resets = 0  # Still Image Device Reset requests received
 
     # ------------------------------------------------------------------ faults
     def _usb_error(self, code: int, text: str) -> usb.core.USBError:
@@ -128,6 +130,7 @@ class SimUsbPtpDevice:
         if self.faults.stall_in > 0 or self.halted:
             if self.faults.stall_in > 0:
                 self.faults.stall_in -= 1
+                self._in.clear()  # the device halts the pipe and drops the transaction it was sending
             self.halted = True
             raise self._usb_error(errno.EPIPE, "Pipe error")
         if not self._in:
@@ -180,6 +183,7 @@ class SimUsbPtpDevice:
             self._pending_cmd = None
             return len(data) if isinstance(data, (bytes, bytearray)) else 0
         if req_type == 0x21 and req == 0x66:  # Device Reset
+            self.resets += 1
             self._in.clear()
             self._out.clear()
             self._pending_cmd = None
@@ -191,9 +195,9 @@ class SimUsbPtpDevice:
         raise self._usb_error(errno.EPIPE, "Pipe error")
 
     def clear_halt(self, ep: int) -> None:
+        """CLEAR_FEATURE(ENDPOINT_HALT): the pipe runs again; data the body still holds stays queued."""
         self._check_present()
         self.halted = False
-        self._in.clear()
 
     def unplug(self) -> None:
         self.gone = True
