@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.errors import BadInputError, DatasetFormatError
+from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 
 log = logging.getLogger(__name__)
 
@@ -21,8 +21,14 @@ log = logging.getLogger(__name__)
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
 @click.option("--sim-scale", default="small", show_default=True, help="Studio scale for --sim: small (336x224 raw, the smallest that processing calibrates reliably), medium, paper, or a sensor downscale factor.")
 @click.option("--seed", default=0, show_default=True, help="Studio seed for --sim.")
+@click.option("--sim-faults", default="", help="Faults of the simulated bodies, e.g. 'disconnect@37,busy=0.1' or 'cam1.hang@5' "
+              "(disconnect/stall/hang@K: during the K-th raw download; busy=P: DeviceBusy with probability P; CAM. = one body).")
+@click.option("--sim-rig", "sim_rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Unix socket of a simulated rig running in its own process (python -m dp5k_capture.sim.server); "
+              "its bodies outlive this command, as real ones do. Implies --sim.")
 @click.option("--dry-run", is_flag=True, help="Print the plan (and what a resume would skip); touch nothing.")
-def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, dry_run: bool) -> None:
+def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, sim_faults: str,
+                    sim_rig: Path | None, dry_run: bool) -> None:
     """Capture one scene: 10 DP + 2 sharp raws, 6 ChArUco, 92 structured-light images (2 bodies).
 
     Resumes an interrupted scene; never overwrites a captured file; errors name the device and step.
@@ -34,7 +40,14 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
 
     check_scene_name(scene)
     check_out_dir(out, create=False)
+    sim = sim or sim_rig is not None
+    if sim_faults and not sim:
+        raise BadInputError("fault injection needs the simulated rig (--sim or --sim-rig)", where="--sim-faults")
     rig = load_rig(rig_path) if rig_path else RigConfig()
+    if sim_faults:
+        from .sim.fault_spec import parse_sim_faults
+
+        parse_sim_faults(sim_faults, tuple(b.id for b in rig.bodies))  # a typo fails before anything starts
     if dry_run:
         for line in describe_plan(rig, scene, out, "dng" if sim else "CR2"):
             click.echo(line)
@@ -51,9 +64,25 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
         return
     from .session_run import SimSpec, capture_scene
 
-    spec = SimSpec(float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale, seed) if sim else None
-    result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+    scale = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
+    spec = SimSpec(scale, seed, faults=sim_faults, server=sim_rig) if sim else None
+    try:
+        result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+    except KeyboardInterrupt:
+        click.echo(f"dp5k: interrupted: {_kept(out / scene)}; run the same command again to resume", err=True)
+        click.get_current_context().exit(130)
     click.echo(f"{result.dir}: complete ({result.written} files captured now)")
+
+
+def _kept(session_dir: Path) -> str:
+    """What an interrupted capture left: the completed files recorded in the manifest."""
+    from dp5k_common.io import read_json
+
+    try:
+        n = len(read_json(session_dir / "manifest.json").get("files", []))
+    except (DP5KError, OSError, AttributeError):
+        n = 0
+    return f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
 
 
 @click.command("devices")

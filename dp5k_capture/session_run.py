@@ -10,10 +10,6 @@ display, or the simulated rig) and in who places the ChArUco board (the operator
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
-import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,7 +28,6 @@ from .rig import RigConfig
 
 log = logging.getLogger(__name__)
 
-GROUND_TRUTH_TMP_PREFIX = "ground_truth.partial."
 SIM_PROJECTOR_POLL_S = 0.05  # the simulated EB-U42 answers at once: poll its state faster than the real one
 
 
@@ -43,10 +38,15 @@ class SimSpec:
     Attributes:
         scale: studio scale (``"small"`` = 336 x 224 raw, ``"medium"``, ``"paper"`` or a sensor downscale factor).
         seed: studio seed (rig jitter, noise).
+        faults: ``--sim-faults`` text (:mod:`dp5k_capture.sim.fault_spec`), e.g. ``disconnect@37,busy=0.1``.
+        server: the Unix socket of a simulated rig in its own process (:mod:`dp5k_capture.sim.server`); then
+            ``scale`` and ``seed`` are the server's, and the bodies outlive this client.
     """
 
     scale: float | str = "small"
     seed: int = 0
+    faults: str = ""
+    server: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -68,35 +68,6 @@ class _Rig:
     writer: RawSessionWriter
     backend: Any = None
     before_complete: Callable[[Path], None] | None = None
-
-
-def sim_studio_scene(scene: str) -> str | int:
-    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
-    from dp5k_studio import PRESETS
-
-    if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
-        return scene
-    return zlib.crc32(scene.encode()) % 100000
-
-
-def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
-    """``session_dir/ground_truth/`` from the simulated world, as one atomic folder rename (kept if present).
-
-    Written into a hidden temporary folder beside it and renamed, so an interruption leaves either no
-    ``ground_truth/`` or a whole one; leftovers of an interrupted write are removed on the next call.
-    """
-    final = Path(session_dir) / "ground_truth"
-    for stale in Path(session_dir).glob(f".{GROUND_TRUTH_TMP_PREFIX}*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    if final.is_dir():
-        return final
-    tmp = Path(tempfile.mkdtemp(prefix=f".{GROUND_TRUTH_TMP_PREFIX}", dir=session_dir))
-    try:
-        optics.write_ground_truth(tmp)
-        os.replace(tmp, final)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return final
 
 
 def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None = None,
@@ -147,19 +118,40 @@ def _real(scene: str, out: Path, rig: RigConfig, sim: SimSpec | None, prompt: Ca
 
 @contextmanager
 def _simulated(scene: str, out: Path, rig: RigConfig, sim: SimSpec | None, prompt: Callable[[str], None] | None) -> Iterator[_Rig]:
-    from .sim.world import StudioOptics, make_sim_rig
+    from .sim.world import StudioOptics, make_sim_rig, sim_studio_scene, write_ground_truth_once
 
     assert sim is not None
+    if sim.server is not None:
+        with _served(scene, out, rig, sim) as r:
+            yield r
+        return
     studio_scene = sim_studio_scene(scene)
-    srig = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(studio_scene, proj, sim.scale, sim.seed), seed=sim.seed)
+    srig = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(studio_scene, proj, sim.scale, sim.seed), seed=sim.seed,
+                        faults=sim.faults)
     try:
         writer = RawSessionWriter(out, scene, srig.rig, "dng", extra={
             "simulated": True, "studio": {"scene": str(studio_scene), "scale": sim.scale, "seed": sim.seed}})
         projector = EpsonProjector(srig.rig.projector.port, timing=EscVp21Timing(poll_s=SIM_PROJECTOR_POLL_S))
+        assert srig.window is not None
         yield _Rig(srig.rig, projector, srig.window, srig.optics, writer, backend=srig.backend,
                    before_complete=lambda session_dir: write_ground_truth_once(srig.optics, session_dir))
     finally:
         srig.close()
 
 
-__all__ = ["CaptureResult", "SimSpec", "capture_scene", "sim_studio_scene", "write_ground_truth_once"]
+@contextmanager
+def _served(scene: str, out: Path, rig: RigConfig, sim: SimSpec) -> Iterator[_Rig]:
+    from .sim.remote import connect_sim_rig
+
+    assert sim.server is not None
+    remote = connect_sim_rig(sim.server, rig, sim.faults)
+    try:
+        writer = RawSessionWriter(out, scene, remote.rig, "dng", extra={"simulated": True, "sim_rig": remote.describe})
+        projector = EpsonProjector(remote.rig.projector.port, timing=EscVp21Timing(poll_s=SIM_PROJECTOR_POLL_S))
+        yield _Rig(remote.rig, projector, remote.window, remote.board, writer, backend=remote.backend,  # type: ignore[arg-type]
+                   before_complete=remote.write_ground_truth_once)
+    finally:
+        remote.close()
+
+
+__all__ = ["CaptureResult", "SimSpec", "capture_scene"]

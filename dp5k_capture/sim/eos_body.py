@@ -11,6 +11,7 @@ OperationNotSupported (libgphoto2 ``PTP_DONT_CLOSE_SESSION``).
 from __future__ import annotations
 
 import logging
+import random
 import struct
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -81,11 +82,14 @@ class BodyFaults:
         busy: op code -> how many times it answers DeviceBusy before it succeeds.
         dual_pixel_raw: False simulates a body whose DPRAW menu setting is off.
         card_full: RemoteRelease answers 7 / the release fails with StoreFull.
+        busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``).
     """
 
     busy: dict[int, int] = field(default_factory=dict)
     dual_pixel_raw: bool = True
     card_full: bool = False
+    busy_rate: float = 0.0
+    rng: random.Random = field(default_factory=lambda: random.Random(0))
 
 
 @dataclass
@@ -236,6 +240,8 @@ class SimulatedEOS:
             return Reply(Resp.OK)
         if not self.session_open:
             return Reply(Resp.SESSION_NOT_OPEN)
+        if self.faults.busy_rate > 0 and self.faults.rng.random() < self.faults.busy_rate:
+            return Reply(Resp.DEVICE_BUSY)
         remaining = self.faults.busy.get(op, 0)
         if remaining > 0:
             self.faults.busy[op] = remaining - 1

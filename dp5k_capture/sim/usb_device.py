@@ -17,9 +17,10 @@ from dataclasses import dataclass
 
 import usb.core
 
-from ..ptp.codes import CANON_VID, EOS_5D_MARK_IV_PID, ContainerType, Resp
+from ..ptp.codes import CANON_VID, EOS_5D_MARK_IV_PID, ContainerType, Op, Resp
 from ..ptp.container import HEADER, HEADER_LEN
 from .eos_body import DATA_OUT_OPS, SimulatedEOS
+from .fault_spec import BodyFaultPlan
 
 EP_IN, EP_OUT, EP_INT = 0x81, 0x02, 0x83
 
@@ -45,6 +46,10 @@ class UsbFaults:
     drop_next_response: bool = False
 
 
+class SimHang(Exception):
+    """The body stopped sending in the middle of a data phase (``hang@K``): this read is never answered."""
+
+
 class SimUsbPtpDevice:
     """One simulated USB PTP device (VID/PID of a 5D Mark IV by default) around a PTP core."""
 
@@ -62,6 +67,9 @@ class SimUsbPtpDevice:
         self.halted = False
         self.in_bytes = 0
         self.resets = 0  # Still Image Device Reset requests received
+        self.plan = BodyFaultPlan()
+        self.downloads = 0  # raw files started (GetObject, or GetPartialObject at offset 0)
+        self.hang_after_in_bytes: int | None = None
 
     # ------------------------------------------------------------------ faults
     def _usb_error(self, code: int, text: str) -> usb.core.USBError:
@@ -115,11 +123,24 @@ class SimUsbPtpDevice:
     def _run(self, op: int, tid: int, params: tuple[int, ...], data: bytes | None) -> None:
         reply = self.core.handle(op, params, data)
         if reply.data is not None and reply.code == Resp.OK:
+            if op == Op.GET_OBJECT or (op == Op.GET_PARTIAL_OBJECT and len(params) > 1 and params[1] == 0):
+                self._arm_download_faults(HEADER_LEN + len(reply.data))
             self._in.append(bytearray(HEADER.pack(HEADER_LEN + len(reply.data), ContainerType.DATA, op, tid) + reply.data))
         if self.faults.drop_next_response:
             self.faults.drop_next_response = False
             return
         self._queue_response(reply.code, tid, reply.params)
+
+    def _arm_download_faults(self, container_bytes: int) -> None:
+        """Count a new raw download; arm the :class:`BodyFaultPlan` faults planned for it (halfway through)."""
+        self.downloads += 1
+        halfway = self.in_bytes + sum(len(c) for c in self._in) + container_bytes // 2
+        if self.plan.disconnect_at_download == self.downloads:
+            self.faults.disconnect_after_in_bytes = halfway
+        if self.plan.hang_at_download == self.downloads:
+            self.hang_after_in_bytes = halfway
+        if self.plan.stall_at_download == self.downloads:
+            self.faults.stall_in = 1
 
     def _queue_response(self, code: int, tid: int, params: tuple[int, ...]) -> None:
         body = struct.pack(f"<{len(params)}I", *params)
@@ -149,6 +170,12 @@ class SimUsbPtpDevice:
         if size % self.max_packet and len(cur) > size:  # libusb: a full packet into a shorter buffer overflows
             raise self._usb_error(errno.EOVERFLOW, "Overflow")
         n = min(size, len(cur))
+        if self.hang_after_in_bytes is not None:
+            left = self.hang_after_in_bytes - self.in_bytes
+            if left <= 0:
+                self.hang_after_in_bytes = None
+                raise SimHang(f"{self.core.serial}: hanging in download {self.downloads}")
+            n = min(n, left)
         if self.faults.disconnect_after_in_bytes is not None:
             left = self.faults.disconnect_after_in_bytes - self.in_bytes
             if left <= 0:

@@ -16,8 +16,7 @@ from dp5k_capture.escvp21 import EpsonProjector, EscVp21Timing, ProjectorError
 from dp5k_capture.ptp.errors import DisconnectedError
 from dp5k_capture.rawsession import CaptureStorageError, RawSessionWriter, verify_session
 from dp5k_capture.rig import RigConfig
-from dp5k_capture.session_run import write_ground_truth_once
-from dp5k_capture.sim.world import SimRig, make_sim_rig
+from dp5k_capture.sim.world import SimRig, make_sim_rig, write_ground_truth_once
 from dp5k_cli import main
 from dp5k_common.errors import DeviceError
 from dp5k_common.rawfile import read_dual_pixel
