@@ -82,13 +82,15 @@ class BodyFaults:
         busy: op code -> how many times it answers DeviceBusy before it succeeds.
         dual_pixel_raw: False simulates a body whose DPRAW menu setting is off.
         card_full: RemoteRelease answers 7 / the release fails with StoreFull.
-        busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``).
+        busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``);
+            ``busy_answers`` counts them.
     """
 
     busy: dict[int, int] = field(default_factory=dict)
     dual_pixel_raw: bool = True
     card_full: bool = False
     busy_rate: float = 0.0
+    busy_answers: int = 0
     rng: random.Random = field(default_factory=lambda: random.Random(0))
 
 
@@ -241,6 +243,7 @@ class SimulatedEOS:
         if not self.session_open:
             return Reply(Resp.SESSION_NOT_OPEN)
         if self.faults.busy_rate > 0 and self.faults.rng.random() < self.faults.busy_rate:
+            self.faults.busy_answers += 1
             return Reply(Resp.DEVICE_BUSY)
         remaining = self.faults.busy.get(op, 0)
         if remaining > 0:
