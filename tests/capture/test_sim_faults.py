@@ -53,7 +53,7 @@ def test_disconnect_fires_in_the_planned_download_under_a_busy_storm(tmp_path: P
                 run_scene(sim.rig, devices, writer)
         finally:
             devices.close()
-        assert all(b.faults.busy_answers > 5 for b in sim.bodies.values())  # both bodies were busy, the client retried
+        assert all(b.faults.busy_answers > 0 for b in sim.bodies.values())  # both bodies were busy, the client retried
     finally:
         sim.close()
     assert str(err.value).startswith("cam1 (") and "dp_f2" in str(err.value)  # cam1's 5th raw: charuco x3, f/1.8, f/2
