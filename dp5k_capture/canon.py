@@ -4,7 +4,7 @@ Sequence (after libgphoto2's camera_prepare_canon_eos_capture / trigger / downlo
 docs/capture.md): OpenSession(1) with tid 0, GetDeviceInfo, SetRemoteMode(1), SetEventMode(1), GetEvent
 until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableShots > 0, image quality
 RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
-DoAf, AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
+DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
 RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
 (KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. Never CloseSession (a 5D
 Mark IV answers OperationNotSupported to everything after it).
@@ -34,7 +34,9 @@ from .ptp.codes import (
 )
 from .ptp.datasets import DeviceInfo
 from .ptp.eos_events import EosRecord, parse_events
+from .ptp.olc import FOCUS_FAILED, FOCUS_IN_FOCUS, OLC_FIELD_SIZES, OLC_REQUEST_ALL
 from .ptp.session import PTPSession
+from .rig import TimeoutConfig
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +50,25 @@ class CaptureTiming:
     """Bounds of the capture loop.
 
     Attributes:
-        prop_echo_s: how long to wait for GetEvent to echo a property we set.
-        object_s: how long to wait for the new object after a release (libgphoto2: 90 s).
+        prop_echo_s: how long to wait for GetEvent to confirm a setting (rig.toml ``[timeouts] settings_s``).
+        object_s: how long to wait for the new object after a release (``capture_s``; libgphoto2: 90-100 s).
         poll_s: pause between GetEvent polls.
         keepalive_s: KeepDeviceOn interval while waiting.
-        af_settle_s: wait after DoAf before AfCancel.
+        af_settle_s: wait after DoAf on a body that reports no AF result (no decodable OLC focus info).
+        focus_s: how long to wait for the AF result after DoAf (``focus_s``).
     """
 
-    prop_echo_s: float = 5.0
-    object_s: float = 90.0
+    prop_echo_s: float = 10.0
+    object_s: float = 100.0
     poll_s: float = 0.02
     keepalive_s: float = 10.0
     af_settle_s: float = 0.5
+    focus_s: float = 10.0
+
+    @classmethod
+    def from_timeouts(cls, t: TimeoutConfig) -> CaptureTiming:
+        """The capture-loop bounds of rig.toml's ``[timeouts]``."""
+        return cls(prop_echo_s=t.settings_s, object_s=t.capture_s, focus_s=t.focus_s)
 
 
 @dataclass
@@ -78,6 +87,8 @@ class EosState:
     props: dict[int, int | str] = field(default_factory=dict)
     avail: dict[int, list[int]] = field(default_factory=dict)
     busy: bool = False
+    focus: int | None = None  # last AF state from OLC focus info: 0 searching, 1 in focus, 2 failed
+    olc: bool = False  # SetRequestOLCInfoGroup was sent: settings and AF state come as OLCInfoChanged
 
 
 class EosCamera:
@@ -117,7 +128,14 @@ class EosCamera:
                 raise DeviceError(f"body does not support operation 0x{op:04X} ({Op(op).name})", where=self.name)
         self.session.transaction(Op.EOS_SET_REMOTE_MODE, (1,))
         self.session.transaction(Op.EOS_SET_EVENT_MODE, (1,))
+        if Op.EOS_SET_REQUEST_OLC_INFO_GROUP in self.info.operations:  # as libgphoto2: settings + AF come back as events
+            self.session.transaction(Op.EOS_SET_REQUEST_OLC_INFO_GROUP, (OLC_REQUEST_ALL,))
+            self.state.olc = True
         self.poll_events()
+        if self.pending:  # announced to a client before us (killed mid-download): not a shot of ours
+            log.warning("%s: ignoring %d image(s) announced before this session: %s", self.name, len(self.pending),
+                        ", ".join(r.filename or "?" for r in self.pending))
+            self.pending.clear()
         self.set_capture_to_pc()
         self.set_raw_quality()
         return self.info
@@ -141,9 +159,11 @@ class EosCamera:
     def poll_events(self) -> list[EosRecord]:
         """One GetEvent; applies property changes to :attr:`state`; object events go to :attr:`pending`."""
         data = self.session.transaction(Op.EOS_GET_EVENT, data_in=True).data
-        records = parse_events(data, where=self.name)
+        records = parse_events(data, where=self.name, olc_version=self._olc_version())
         for rec in records:
-            if rec.code == EosEvent.PROP_VALUE_CHANGED and rec.prop is not None:
+            if rec.code == EosEvent.OLC_INFO_CHANGED and rec.focus is not None:
+                self.state.focus = rec.focus
+            elif rec.code == EosEvent.PROP_VALUE_CHANGED and rec.prop is not None:
                 self.state.props[rec.prop] = rec.value  # type: ignore[assignment]
             elif rec.code == EosEvent.AVAIL_LIST_CHANGED and rec.prop is not None:
                 self.state.avail[rec.prop] = rec.values
@@ -153,6 +173,14 @@ class EosCamera:
                 self.pending.append(rec)
         return records
 
+    def _olc_version(self) -> int:
+        value = self.state.props.get(EosProp.OLC_INFO_VERSION, 0)
+        return value if isinstance(value, int) else 0
+
+    def reports_af_result(self) -> bool:
+        """The body sends its AF state (OLC requested, and its OLC version is one we can decode)."""
+        return self.state.olc and self._olc_version() in OLC_FIELD_SIZES
+
     def keep_alive(self) -> None:
         """KeepDeviceOn (0x911D) when the interval has passed."""
         now = time.monotonic()
@@ -160,14 +188,15 @@ class EosCamera:
             self.session.transaction(Op.EOS_KEEP_DEVICE_ON)
             self._last_keepalive = now
 
-    def _wait(self, what: str, done: Callable[[], bool], timeout_s: float) -> None:
+    def _wait(self, what: str, done: Callable[[], bool], timeout_s: float, key: str = "settings_s") -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             self.poll_events()
             if done():
                 return
             if time.monotonic() > deadline:
-                raise DeviceError(f"{what}: no confirmation from the body within {timeout_s:g} s", where=self.name)
+                raise DeviceError(f"{what}: no confirmation from the body within {timeout_s:g} s "
+                                  f"(rig.toml [timeouts] {key})", where=self.name)
             self.keep_alive()
             time.sleep(self.timing.poll_s)
 
@@ -216,17 +245,34 @@ class EosCamera:
 
     # ------------------------------------------------------------------ focus
     def focus_at(self, point_px: tuple[int, int]) -> None:
-        """Autofocus once at ``point_px`` (raw pixels): live view on, ZoomPosition, DoAf, AfCancel, live view off."""
+        """Autofocus once at ``point_px`` (raw pixels) and confirm it: live view on, ZoomPosition, DoAf, wait for
+        the body's AF result in its events (OLC focus info), AfCancel, live view off.
+
+        Raises:
+            DeviceError: the body reports a failed AF, or no result within ``focus_s`` (naming the body).
+        """
         x, y = int(round(point_px[0])), int(round(point_px[1]))
         self.set_prop(EosProp.EVF_OUTPUT_DEVICE, EVF_OUTPUT_PC, "live view on")
         self.session.transaction(Op.EOS_ZOOM_POSITION, (x, y))
+        self.state.focus = None
         self.session.transaction(Op.EOS_DO_AF)
-        deadline = time.monotonic() + self.timing.af_settle_s
-        while time.monotonic() < deadline:
-            self.poll_events()
-            time.sleep(self.timing.poll_s)
-        self.session.transaction(Op.EOS_AF_CANCEL)
-        self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        try:
+            if self.reports_af_result():
+                self._wait(f"autofocus at ({x}, {y}) px: AF result", lambda: self.state.focus in (FOCUS_IN_FOCUS, FOCUS_FAILED),
+                           self.timing.focus_s, "focus_s")
+            else:
+                log.warning("%s: the body reports no AF result (OLC version %d): waiting %g s after DoAf",
+                            self.name, self._olc_version(), self.timing.af_settle_s)
+                deadline = time.monotonic() + self.timing.af_settle_s
+                while time.monotonic() < deadline:
+                    self.poll_events()
+                    time.sleep(self.timing.poll_s)
+        finally:
+            self.session.transaction(Op.EOS_AF_CANCEL)
+            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        if self.state.focus == FOCUS_FAILED:
+            raise DeviceError(f"autofocus at ({x}, {y}) px failed: the body found no focus there (low contrast, closer "
+                              "than the lens focuses, or lens switch on MF); capture stops before any shot of this run", where=self.name)
         self.focus_point_px = (x, y)
 
     # ------------------------------------------------------------------ capture

@@ -22,6 +22,12 @@ Example (all keys optional except the bodies' serials on a real rig)::
     dp_f_numbers = [1.8, 2.0, 2.8, 4.0, 5.6]
     dp_shutter_s_at_f1_8 = 0.002   # scaled by (N / 1.8)^2 to keep the exposure constant
     sharp_f_number = 22.0
+
+    [timeouts]                 # seconds; libgphoto2-like defaults
+    transaction_s = 20.0       # one USB transaction
+    capture_s = 100.0          # release -> new raw announced
+    settings_s = 10.0          # Av/Tv/ISO confirmed by the body
+    focus_s = 10.0             # AF result
 """
 
 from __future__ import annotations
@@ -97,6 +103,24 @@ class ExposureConfig:
 
 
 @dataclass(frozen=True)
+class TimeoutConfig:
+    """Time limits (seconds) of the body protocol (``[timeouts]`` in rig.toml). On expiry the error names the
+    step and the body. Defaults follow libgphoto2 (20 s per USB transaction, ~100 s for a capture).
+
+    Attributes:
+        transaction_s: one PTP transaction phase (command, data, response) on USB.
+        capture_s: after the release, until the body announces the new raw file.
+        settings_s: until the body confirms (echoes) an aperture, shutter, ISO or other setting.
+        focus_s: after DoAf, until the body reports its AF result (in focus, or failed).
+    """
+
+    transaction_s: float = 20.0
+    capture_s: float = 100.0
+    settings_s: float = 10.0
+    focus_s: float = 10.0
+
+
+@dataclass(frozen=True)
 class RigConfig:
     """The whole rig."""
 
@@ -104,6 +128,7 @@ class RigConfig:
     projector: ProjectorConfig = field(default_factory=ProjectorConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
     aux_view: str = "left"
+    timeouts: TimeoutConfig = field(default_factory=TimeoutConfig)
 
 
 def canon_shutter(shutter_s: float) -> float:
@@ -140,10 +165,11 @@ def load_rig(path: str | Path) -> RigConfig:
     bodies = tuple(_build(BodyConfig, b, f"{path} [[body]]") for b in raw.pop("body", [])) or RigConfig().bodies
     projector = _build(ProjectorConfig, raw.pop("projector", {}), f"{path} [projector]")
     exposure = _build(ExposureConfig, raw.pop("exposure", {}), f"{path} [exposure]")
+    timeouts = _build(TimeoutConfig, raw.pop("timeouts", {}), f"{path} [timeouts]")
     aux_view = raw.pop("aux_view", "left")
     if raw:
         raise BadInputError(f"unknown sections {sorted(raw)}", where=path)
-    rig = RigConfig(bodies, projector, exposure, aux_view)
+    rig = RigConfig(bodies, projector, exposure, aux_view, timeouts)
     validate_rig(rig, str(path))
     return rig
 
@@ -172,3 +198,7 @@ def validate_rig(rig: RigConfig, where: str = "rig") -> None:
         raise BadInputError(f"aux_view must be left or right, got {rig.aux_view!r}", where=where)
     if not (math.isfinite(e.iso) and e.iso > 0):
         raise BadInputError(f"bad ISO {e.iso}", where=where)
+    for f in fields(TimeoutConfig):
+        limit = getattr(rig.timeouts, f.name)
+        if not (isinstance(limit, (int, float)) and math.isfinite(limit) and limit > 0):
+            raise BadInputError(f"[timeouts] {f.name} must be a positive number of seconds, got {limit!r}", where=where)

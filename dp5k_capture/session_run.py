@@ -81,8 +81,8 @@ def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None 
         rig: the rig (``rig.toml``); for ``sim`` its exposure plan and ids are kept, serials and ports replaced.
         sim: simulate the rig (bodies on a simulated USB bus, projector on a pty, the virtual studio).
         prompt: how the operator is asked to move the ChArUco board on the real rig (shows a message, waits).
-        session: PTP session bounds for the bodies (default :class:`SessionConfig`).
-        timing: EOS capture-loop bounds (default :class:`CaptureTiming`).
+        session: PTP session bounds for the bodies (default: rig.toml ``[timeouts] transaction_s``).
+        timing: EOS capture-loop bounds (default: rig.toml ``[timeouts]``).
 
     Raises:
         dp5k_common.errors.BadInputError: a hostile scene name or an unwritable ``out`` (before any device is touched).
@@ -94,7 +94,9 @@ def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None 
     with opener(scene, Path(out), rig, sim, prompt) as r:
         devices = RigDevices({}, r.projector, r.window, r.board)
         try:
-            devices.bodies = open_bodies(r.rig, backend=r.backend, config=session, timing=timing)
+            devices.bodies = open_bodies(r.rig, backend=r.backend,
+                                         config=session or SessionConfig(timeout_s=r.rig.timeouts.transaction_s),
+                                         timing=timing or CaptureTiming.from_timeouts(r.rig.timeouts))
             written = run_scene(r.rig, devices, r.writer, before_complete=r.before_complete)
         finally:
             devices.close()

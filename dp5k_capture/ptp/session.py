@@ -215,7 +215,7 @@ class PTPSession:
                     self.transport.cancel(tid)
                 except DeviceError:
                     pass
-                raise PTPTimeoutError(f"{step}: {exc.message}", where=self.name) from exc
+                raise PTPTimeoutError(f"{step}: {exc.message} after {timeout_ms / 1000:g} s", where=self.name) from exc
             except DeviceError as exc:
                 if not exc.message.startswith(step):
                     exc.message = f"{step}: {exc.message}"

@@ -36,11 +36,13 @@ from ..ptp.codes import (
     TV_CODES,
 )
 from ..ptp.datasets import DeviceInfo, DevicePropDesc, ObjectInfo, StorageInfo, Writer
+from ..ptp.olc import FOCUS_FAILED, FOCUS_IN_FOCUS, OLC_FOCUS_BIT, OLC_PROPS, pack_olc
 
 log = logging.getLogger(__name__)
 
 STORAGE_ID = 0x00010001
 RAW_FORMAT = (6, 0, 4)  # ImageFormat entry: kind 6 = RAW, size 0 = L, compression 4 = lossless
+OLC_VERSION = 0xB  # OLC field layout of the 5Ds generation (the 5D Mark IV's own version is not recorded)
 DATA_OUT_OPS = frozenset({Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.SET_DEVICE_PROP_VALUE})
 
 
@@ -82,6 +84,7 @@ class BodyFaults:
         busy: op code -> how many times it answers DeviceBusy before it succeeds.
         dual_pixel_raw: False simulates a body whose DPRAW menu setting is off.
         card_full: RemoteRelease answers 7 / the release fails with StoreFull.
+        af_result: what DoAf reports in OLC focus info: ``ok`` (in focus), ``fail`` (AF failed), ``silent`` (nothing).
         busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``);
             ``busy_answers`` counts them.
     """
@@ -89,6 +92,7 @@ class BodyFaults:
     busy: dict[int, int] = field(default_factory=dict)
     dual_pixel_raw: bool = True
     card_full: bool = False
+    af_result: str = "ok"
     busy_rate: float = 0.0
     busy_answers: int = 0
     rng: random.Random = field(default_factory=lambda: random.Random(0))
@@ -131,6 +135,7 @@ class SimulatedEOS:
         self.broken = False  # after CloseSession, like the real body
         self.remote_mode = 0
         self.event_mode = 0
+        self.olc_mask = 0  # SetRequestOLCInfoGroup: Av/Tv/ISO and the AF state then come only as OLCInfoChanged
         self.events: list[bytes] = []
         self.objects: dict[int, _Object] = {}
         self._next_handle = 0x9000_0001
@@ -157,6 +162,7 @@ class SimulatedEOS:
             EosProp.CAPTURE_DESTINATION: CAPTURE_DEST_CARD,
             EosProp.AVAILABLE_SHOTS: 0,
             EosProp.EVF_OUTPUT_DEVICE: 0,
+            EosProp.OLC_INFO_VERSION: OLC_VERSION,
             EosProp.SERIAL_NUMBER: serial,
             EosProp.LENS_NAME: lens_name,
         }
@@ -177,11 +183,15 @@ class SimulatedEOS:
 
     def _queue_prop(self, prop: int) -> None:
         value = self.props[prop]
+        bit = {p: b for b, (p, _) in OLC_PROPS.items()}.get(prop)
+        if bit is not None and self.olc_mask & bit:
+            self.events.append(pack_olc(OLC_VERSION, {prop: int(value)}))
+            return
         self.events.append(ev.pack_prop_value(prop, value))
 
     def _queue_dump(self) -> None:
-        for prop in self.props:  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
-            self._queue_prop(prop)
+        for prop, value in self.props.items():  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
+            self.events.append(ev.pack_prop_value(prop, value))
         for prop, values in self.avail.items():
             self.events.append(ev.pack_avail_list(prop, values))
         self.events.append(ev.pack_image_format_value(EosProp.IMAGE_FORMAT, *self.image_format))
@@ -362,8 +372,9 @@ class SimulatedEOS:
         return Reply(Resp.OK)
 
     def _op_9115(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """SetEventMode: switching it on (each new client does) starts with a dump of every property."""
         self.event_mode = p[0]
-        if p[0] and not self._dumped:
+        if p[0]:
             self._queue_dump()
         return Reply(Resp.OK)
 
@@ -396,10 +407,21 @@ class SimulatedEOS:
         return Reply(Resp.OK)
 
     def _op_9154(self, p: tuple[int, ...], data: bytes | None) -> Reply:
-        """DoAf: focus at the AF frame (only in live view, like the real body)."""
+        """DoAf: focus at the AF frame (only in live view, like the real body); the AF state goes to OLC focus info."""
         if not int(self.props[EosProp.EVF_OUTPUT_DEVICE]) & 2:
             return Reply(Resp.GENERAL_ERROR)
-        self._autofocus()
+        report = self.olc_mask & OLC_FOCUS_BIT and self.faults.af_result != "silent"
+        if report:
+            self.events.append(pack_olc(OLC_VERSION, focus=0))
+        if self.faults.af_result == "ok":
+            self._autofocus()
+        if report:
+            self.events.append(pack_olc(OLC_VERSION, focus=FOCUS_IN_FOCUS if self.faults.af_result == "ok" else FOCUS_FAILED))
+        return Reply(Resp.OK)
+
+    def _op_913d(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """SetRequestOLCInfoGroup(mask)."""
+        self.olc_mask = p[0]
         return Reply(Resp.OK)
 
     def _op_9128(self, p: tuple[int, ...], data: bytes | None) -> Reply:

@@ -265,3 +265,14 @@ def test_ctrl_c_before_the_ground_truth_leaves_the_session_incomplete(tmp_path: 
     assert not list((tmp_path / "s1").glob(".ground_truth*"))
     res = CliRunner().invoke(main, ["verify", "--no-dp-check", str(tmp_path / "s1")])
     assert res.exit_code == 0 and "OK: 110 files" in res.output
+
+
+def test_failed_autofocus_stops_the_scene_before_any_shot(tmp_path: Path) -> None:
+    def af_fails(sim: SimRig) -> None:
+        sim.bodies["cam1"].faults.af_result = "fail"
+
+    with pytest.raises(DeviceError, match=r"^cam1 \(.*\): autofocus: autofocus at \(24, 16\) px failed") as err:
+        _run(tmp_path, before=af_fails)
+    assert "SIM5D4000002" in str(err.value)
+    assert json.loads((tmp_path / "s1/manifest.json").read_text())["files"] == []
+    assert not list((tmp_path / "s1").rglob("*.dng"))

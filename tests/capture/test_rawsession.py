@@ -40,6 +40,23 @@ def test_rig_toml(tmp_path: Path) -> None:
         load_rig(p)
 
 
+def test_rig_toml_timeouts(tmp_path: Path) -> None:
+    from dp5k_capture.canon import CaptureTiming
+
+    p = tmp_path / "rig.toml"
+    assert (RigConfig().timeouts.transaction_s, RigConfig().timeouts.capture_s) == (20.0, 100.0)  # libgphoto2-like
+    p.write_text("[timeouts]\ntransaction_s = 30\nfocus_s = 4.5\nsettings_s = 2\n")
+    t = load_rig(p).timeouts
+    assert (t.transaction_s, t.capture_s, t.settings_s, t.focus_s) == (30, 100.0, 2, 4.5)
+    timing = CaptureTiming.from_timeouts(t)
+    assert (timing.prop_echo_s, timing.object_s, timing.focus_s) == (2, 100.0, 4.5)
+    for bad, why in (("focus_s = -1", "focus_s must be a positive"), ("capture_s = \"long\"", "capture_s must be"),
+                     ("af_s = 3", "unknown key 'af_s'")):
+        p.write_text(f"[timeouts]\n{bad}\n")
+        with pytest.raises(BadInputError, match=why):
+            load_rig(p)
+
+
 def _writer(tmp_path: Path) -> tuple[RawSessionWriter, RigConfig]:
     rig = RigConfig()
     return RawSessionWriter(tmp_path, "s1", rig, "dng"), rig
