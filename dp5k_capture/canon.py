@@ -6,7 +6,8 @@ until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableSh
 RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
 DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
 RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
-(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. Never CloseSession (a 5D
+(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. With capture to the card:
+ObjectAddedEx, GetObjectInfo, GetPartialObject chunks, and DeleteObject only after the file is verified. Never CloseSession (a 5D
 Mark IV answers OperationNotSupported to everything after it).
 """
 
@@ -23,7 +24,9 @@ from dp5k_common.errors import DeviceError
 
 from .ptp.codes import (
     CANON_VID,
+    CAPTURE_DEST_CARD,
     CAPTURE_DEST_PC,
+    OFC_ASSOCIATION,
     EVF_OUTPUT_PC,
     EosEvent,
     EosProp,
@@ -78,6 +81,7 @@ class Download:
     filename: str
     data: bytes
     handle: int
+    on_card: bool = False
 
 
 @dataclass
@@ -98,10 +102,15 @@ class EosCamera:
         session: an unopened PTP session on the body's transport.
         usb_id: (vendor, product) from the USB descriptor; identifies Canon (DeviceInfo says vendor 6).
         timing: bounds of the capture loop.
+        destination: ``pc`` (raws go straight to the PC) or ``card`` (written to the card, then downloaded).
+        delete_from_card: with ``card``, :meth:`release_card_copy` deletes the card file (after a verified download).
     """
 
-    def __init__(self, session: PTPSession, usb_id: tuple[int, int] | None = None, timing: CaptureTiming | None = None) -> None:
+    def __init__(self, session: PTPSession, usb_id: tuple[int, int] | None = None, timing: CaptureTiming | None = None,
+                 *, destination: str = "pc", delete_from_card: bool = False) -> None:
         self.session = session
+        self.destination = destination
+        self.delete_from_card = delete_from_card
         self.usb_id = usb_id
         self.timing = timing or CaptureTiming()
         self.state = EosState()
@@ -136,7 +145,10 @@ class EosCamera:
             log.warning("%s: ignoring %d image(s) announced before this session: %s", self.name, len(self.pending),
                         ", ".join(r.filename or "?" for r in self.pending))
             self.pending.clear()
-        self.set_capture_to_pc()
+        if self.destination == "card":
+            self.set_capture_to_card()
+        else:
+            self.set_capture_to_pc()
         self.set_raw_quality()
         return self.info
 
@@ -169,8 +181,8 @@ class EosCamera:
                 self.state.avail[rec.prop] = rec.values
             elif rec.code == EosEvent.CAMERA_STATUS_CHANGED:
                 self.state.busy = rec.status == 1
-            elif rec.code in (EosEvent.REQUEST_OBJECT_TRANSFER, EosEvent.OBJECT_ADDED_EX):
-                self.pending.append(rec)
+            elif rec.code == EosEvent.REQUEST_OBJECT_TRANSFER or (rec.code == EosEvent.OBJECT_ADDED_EX and rec.ofc != OFC_ASSOCIATION):
+                self.pending.append(rec)  # a new folder on the card (OFC association) is not an image
         return records
 
     def _olc_version(self) -> int:
@@ -235,6 +247,16 @@ class EosCamera:
         self.session.transaction(Op.EOS_PC_HDD_CAPACITY, (0x0FFFFFFF, 0x1000, 1))
         self._wait("PC capture", lambda: int(self.state.props.get(EosProp.AVAILABLE_SHOTS, 0) or 0) > 0, self.timing.prop_echo_s)
 
+    def set_capture_to_card(self) -> None:
+        """CaptureDestination = the body's card value (the first offered value that is not PC, as libgphoto2
+        picks it), then wait until AvailableShots > 0 (a card is in and has room)."""
+        offered = [v for v in self.state.avail.get(EosProp.CAPTURE_DESTINATION, []) if v != CAPTURE_DEST_PC]
+        card = offered[0] if offered else CAPTURE_DEST_CARD
+        if self.state.props.get(EosProp.CAPTURE_DESTINATION) != card:
+            self.set_prop(EosProp.CAPTURE_DESTINATION, card, "capture destination card")
+        self._wait("card capture (is a card in, with room?)",
+                   lambda: int(self.state.props.get(EosProp.AVAILABLE_SHOTS, 0) or 0) > 0, self.timing.prop_echo_s)
+
     def set_raw_quality(self) -> None:
         """ImageFormat = one full-size RAW (Dual Pixel RAW itself is a menu setting; files are verified)."""
         kind, size, comp = RAW_IMAGE_FORMAT
@@ -290,14 +312,20 @@ class EosCamera:
         return self.pending.pop(0)
 
     def download(self, rec: EosRecord) -> Download:
-        """Download the announced object in 1 MiB GetPartialObject chunks; release it from the body.
+        """Download the announced object in 1 MiB GetPartialObject chunks.
 
-        A PC capture ends with TransferComplete (the body frees its buffer); a card capture is deleted.
+        A PC capture ends with TransferComplete (the body frees its buffer). A card capture is first looked up
+        with GetObjectInfo (its size on the card) and stays on the card: :meth:`release_card_copy` deletes it
+        once the caller has verified and stored the file.
         """
         assert rec.handle is not None
+        on_card = rec.code == EosEvent.OBJECT_ADDED_EX
         total = int(rec.size or 0)
-        if total <= 0:
-            total = self.session.get_object_info(rec.handle).compressed_size
+        if on_card or total <= 0:
+            info = self.session.get_object_info(rec.handle)
+            if total > 0 and info.compressed_size != total:
+                raise DeviceError(f"card file {info.filename}: ObjectInfo says {info.compressed_size} bytes, the event {total}", where=self.name)
+            total = info.compressed_size
         buf = bytearray()
         while len(buf) < total:
             chunk = self.session.get_partial_object(rec.handle, len(buf), min(CHUNK_BYTES, total - len(buf)))
@@ -305,11 +333,14 @@ class EosCamera:
                 raise DeviceError(f"download of {rec.filename}: body sent 0 bytes at offset {len(buf)}", where=self.name)
             buf += chunk
             self.keep_alive()
-        if rec.code == EosEvent.REQUEST_OBJECT_TRANSFER:
+        if not on_card:
             self.session.transaction(Op.EOS_TRANSFER_COMPLETE, (rec.handle,))
-        else:
-            self.session.delete_object(rec.handle)
-        return Download(rec.filename or f"{rec.handle:08x}", bytes(buf), rec.handle)
+        return Download(rec.filename or f"{rec.handle:08x}", bytes(buf), rec.handle, on_card)
+
+    def release_card_copy(self, dl: Download) -> None:
+        """Delete a downloaded card file if ``delete_from_card`` (call only after the download is verified)."""
+        if dl.on_card and self.delete_from_card:
+            self.session.delete_object(dl.handle)
 
     def capture(self, f_number: float, shutter_s: float, iso: int) -> Download:
         """Set the exposure, release without refocusing and download the new raw file."""

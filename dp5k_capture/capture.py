@@ -176,6 +176,7 @@ def _shoot(cam: EosCamera, cam_id: str, shot: Shot, writer: RawSessionWriter, ch
         dl = cam.capture(shot.f_number, shot.shutter_s, shot.iso)
         meta = {"camera_filename": dl.filename, "focus_point_px": list(cam.focus_point_px or ())}
         writer.add(cam_id, shot, dl.data, meta, check=dual_pixel_check(cam.name) if check_dp else None)
+        cam.release_card_copy(dl)  # capture to card: delete the card file only now that it is verified and stored
     except DP5KError as exc:
         if not exc.message.startswith(shot.stem):
             exc.message = f"{shot.stem}: {exc.message}"

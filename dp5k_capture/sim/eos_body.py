@@ -22,6 +22,7 @@ from ..ptp.codes import (
     CAPTURE_DEST_CARD,
     CAPTURE_DEST_PC,
     ISO_CODES,
+    OFC_ASSOCIATION,
     OFC_DNG,
     EosEvent,
     EosProp,
@@ -42,6 +43,9 @@ log = logging.getLogger(__name__)
 
 STORAGE_ID = 0x00010001
 RAW_FORMAT = (6, 0, 4)  # ImageFormat entry: kind 6 = RAW, size 0 = L, compression 4 = lossless
+CARD_SHOTS = 900  # AvailableShots the simulated card has room for
+CARD_IMAGE_FOLDER = 0x9010_0000  # DCIM/100CANON on the card
+CARD_FOLDERS = {0x9000_0000: ("DCIM", 0), CARD_IMAGE_FOLDER: ("100CANON", 0x9000_0000)}  # handle -> (name, parent)
 OLC_VERSION = 0xB  # OLC field layout of the 5Ds generation (the 5D Mark IV's own version is not recorded)
 DATA_OUT_OPS = frozenset({Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.SET_DEVICE_PROP_VALUE})
 
@@ -160,7 +164,7 @@ class SimulatedEOS:
             EosProp.DRIVE_MODE: 0,
             EosProp.FOCUS_MODE: 0,  # one-shot AF
             EosProp.CAPTURE_DESTINATION: CAPTURE_DEST_CARD,
-            EosProp.AVAILABLE_SHOTS: 0,
+            EosProp.AVAILABLE_SHOTS: CARD_SHOTS,  # room on the card (capture to card is the power-on setting)
             EosProp.EVF_OUTPUT_DEVICE: 0,
             EosProp.OLC_INFO_VERSION: OLC_VERSION,
             EosProp.SERIAL_NUMBER: serial,
@@ -229,7 +233,7 @@ class SimulatedEOS:
         self.last_object_bytes = data
         self.events.append(ev.pack_camera_status(1))
         if on_card:
-            self.events.append(ev.pack_object_added_ex(handle, STORAGE_ID, OFC_DNG, len(data), 0x9000_0000, name))
+            self.events.append(ev.pack_object_added_ex(handle, STORAGE_ID, OFC_DNG, len(data), CARD_IMAGE_FOLDER, name))
         else:
             self.events.append(ev.pack_request_object_transfer(handle, OFC_DNG, len(data), name))
         self.events.append(ev.pack_camera_status(0))
@@ -285,20 +289,34 @@ class SimulatedEOS:
     _op_9102 = _op_1005
 
     def _op_1007(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """GetObjectHandles(storage, format, parent): parent 0xFFFFFFFF = the card's root, 0 = every object."""
         if p[0] not in (STORAGE_ID, 0xFFFFFFFF):
             return Reply(Resp.INVALID_STORAGE_ID)
-        handles = [h for h, o in self.objects.items() if o.on_card]
+        tree = [(h, parent) for h, (_, parent) in CARD_FOLDERS.items()]
+        tree += [(h, CARD_IMAGE_FOLDER) for h, o in self.objects.items() if o.on_card]
+        if p[2] == 0xFFFFFFFF:
+            handles = [h for h, parent in tree if parent == 0]
+        elif p[2] == 0:
+            handles = [h for h, _ in tree]
+        else:
+            handles = [h for h, parent in tree if parent == p[2]]
         return Reply(Resp.OK, data=Writer().array(4, handles).bytes())
 
     def _object(self, handle: int) -> _Object | None:
         return self.objects.get(handle)
 
     def _op_1008(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """GetObjectInfo of a card folder (DCIM, DCIM/100CANON) or of an image (on the card or in SDRAM)."""
+        if p[0] in CARD_FOLDERS:
+            name, parent = CARD_FOLDERS[p[0]]
+            info = ObjectInfo(storage_id=STORAGE_ID, object_format=OFC_ASSOCIATION, parent=parent,
+                              association_type=1, filename=name, capture_date="20261121T200000")
+            return Reply(Resp.OK, data=info.pack())
         obj = self._object(p[0])
         if obj is None:
             return Reply(Resp.INVALID_OBJECT_HANDLE)
-        info = ObjectInfo(storage_id=STORAGE_ID, object_format=OFC_DNG, compressed_size=len(obj.data),
-                          parent=0x9000_0000, filename=obj.name, capture_date="20261121T200000")
+        info = ObjectInfo(storage_id=STORAGE_ID if obj.on_card else 0, object_format=OFC_DNG, compressed_size=len(obj.data),
+                          parent=CARD_IMAGE_FOLDER if obj.on_card else 0, filename=obj.name, capture_date="20261121T200000")
         return Reply(Resp.OK, data=info.pack())
 
     def _op_1009(self, p: tuple[int, ...], data: bytes | None) -> Reply:
@@ -355,8 +373,8 @@ class SimulatedEOS:
             return Reply(Resp.INVALID_DEVICE_PROP_VALUE)
         self.props[prop] = value
         self._queue_prop(prop)
-        if prop == EosProp.CAPTURE_DESTINATION and value == CAPTURE_DEST_CARD:
-            self.props[EosProp.AVAILABLE_SHOTS] = 900
+        if prop == EosProp.CAPTURE_DESTINATION:  # the card's room, or 0 until the PC announces its (PCHDDCapacity)
+            self.props[EosProp.AVAILABLE_SHOTS] = CARD_SHOTS if value == CAPTURE_DEST_CARD else 0
             self._queue_prop(EosProp.AVAILABLE_SHOTS)
         return Reply(Resp.OK)
 

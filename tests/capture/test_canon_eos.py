@@ -11,7 +11,7 @@ from dp5k_capture.ptp.codes import Op
 from dp5k_capture.ptp.session import PTPSession
 from dp5k_common.errors import DeviceError
 
-from .conftest import FAST_SESSION, Body
+from .conftest import FAST, FAST_SESSION, Body
 
 
 def test_open_puts_the_body_in_remote_capture_to_pc_raw(body: Body) -> None:
@@ -87,13 +87,21 @@ def test_release_busy_storm_and_keepalive(body: Body) -> None:
     assert Op.EOS_KEEP_DEVICE_ON in body.core.op_log
 
 
-def test_card_capture_is_downloaded_then_deleted(body: Body) -> None:
-    cam = body.camera
+@pytest.mark.parametrize("delete", [False, True])
+def test_card_capture_is_downloaded_then_deleted_only_when_asked(body: Body, delete: bool) -> None:
+    cam = EosCamera(body.session, (0x04A9, 0x3281), FAST, destination="card", delete_from_card=delete)
+    body.core.props[0xD11C] = 4  # the body starts in PC mode: open() switches it to its card
     cam.open()
-    cam.set_prop(0xD11C, 2, "capture destination card")
+    assert body.core.props[0xD11C] == 2 and Op.EOS_PC_HDD_CAPACITY not in body.core.op_log
     dl = cam.capture(2.0, 1 / 250, 100)
-    assert dl.data == body.core.last_object_bytes
-    assert Op.DELETE_OBJECT in body.core.op_log and body.core.objects == {}
+    assert dl.data == body.core.last_object_bytes and dl.on_card and dl.filename == "IMG_0001.DNG"
+    assert Op.GET_OBJECT_INFO in body.core.op_log and Op.EOS_TRANSFER_COMPLETE not in body.core.op_log
+    assert dl.handle in body.core.objects  # still on the card until the caller has verified the file
+    handles = body.session.get_object_handles(0x00010001, 0, 0)
+    names = [body.session.get_object_info(h).filename for h in handles]
+    assert names == ["DCIM", "100CANON", "IMG_0001.DNG"]  # the card's folders, then the image
+    cam.release_card_copy(dl)
+    assert (dl.handle in body.core.objects) is not delete and (Op.DELETE_OBJECT in body.core.op_log) is delete
 
 
 def test_never_close_session_on_a_5d_mark_iv() -> None:

@@ -24,8 +24,9 @@ from dp5k_common.rawfile import read_dual_pixel
 from .conftest import FAST, FAST_SESSION
 
 
-def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None = None) -> tuple[int, SimRig]:
-    sim = make_sim_rig(RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
+def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None = None,
+         rig: RigConfig | None = None) -> tuple[int, SimRig]:
+    sim = make_sim_rig(rig or RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
     try:
         writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True})
         proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01, default_s=0.5))
@@ -276,3 +277,23 @@ def test_failed_autofocus_stops_the_scene_before_any_shot(tmp_path: Path) -> Non
     assert "SIM5D4000002" in str(err.value)
     assert json.loads((tmp_path / "s1/manifest.json").read_text())["files"] == []
     assert not list((tmp_path / "s1").rglob("*.dng"))
+
+
+def test_card_capture_scene_deletes_each_card_file_only_after_it_is_verified(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    card = replace(RigConfig(), capture_destination="card", delete_from_card=True)
+    n, sim = _run(tmp_path, rig=card)
+    assert n == 110 and verify_session(tmp_path / "s1").problems == []
+    assert all(b.objects == {} and 0x100B in b.op_log and 0x9117 not in b.op_log for b in sim.bodies.values())
+
+    held: dict[str, SimRig] = {}
+
+    def dpraw_off(s: SimRig) -> None:
+        s.bodies["cam1"].faults.dual_pixel_raw = False
+        held["sim"] = s
+
+    with pytest.raises(DeviceError, match="did not write a Dual Pixel RAW"):
+        _run(tmp_path / "b", rig=card, before=dpraw_off)
+    bodies = held["sim"].bodies  # the refused raw was not stored, so its card copy was kept; cam0's was deleted
+    assert [o.name for o in bodies["cam1"].objects.values()] == ["IMG_0001.DNG"] and bodies["cam0"].objects == {}
