@@ -11,7 +11,9 @@ skipped when the scene is resumed.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -27,6 +29,8 @@ from .rawsession import RawSessionWriter, Shot, plan_scene
 from .rig import RigConfig
 
 log = logging.getLogger(__name__)
+
+KEEPALIVE_DEFAULT_S = 10.0  # KeepDeviceOn interval (s) when there are no bodies to take it from
 
 
 class BoardPositioner(Protocol):
@@ -137,10 +141,12 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
             if not pending:
                 continue
             if shot.kind == "charuco":
-                devices.board.place(int(shot.index or 0))
+                with keep_bodies_awake(devices.bodies.values()):
+                    devices.board.place(int(shot.index or 0))
                 board_out = False
             elif not board_out:
-                devices.board.clear()
+                with keep_bodies_awake(devices.bodies.values()):
+                    devices.board.clear()
                 board_out = True
             if shot.kind == "sl":
                 if blanked:
@@ -153,7 +159,8 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
                 written += 1
                 bar.update(1)
         if not board_out:
-            devices.board.clear()
+            with keep_bodies_awake(devices.bodies.values()):
+                devices.board.clear()
         _step("blank projector", proj.name, proj.blank, True)
     finally:
         bar.close()
@@ -161,6 +168,32 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
         before_complete(writer.dir)
     writer.finish(rig)
     return written
+
+
+@contextmanager
+def keep_bodies_awake(bodies: Iterable[EosCamera]) -> Iterator[None]:
+    """While the operator is prompted (the main thread waits for Enter), send KeepDeviceOn to each body every
+    ``keepalive_s`` from a helper thread, so no body powers down. The bodies are idle meanwhile: only this
+    thread talks to them. A failure is logged; the next shot reports the body's state."""
+    cams = list(bodies)
+    stop = threading.Event()
+
+    def run() -> None:
+        interval_s = min((c.timing.keepalive_s for c in cams), default=KEEPALIVE_DEFAULT_S)
+        while not stop.wait(interval_s):
+            for cam in cams:
+                try:
+                    cam.keep_alive()
+                except DP5KError as exc:
+                    log.warning("%s: keep-alive while waiting for the operator: %s", cam.name, exc)
+
+    thread = threading.Thread(target=run, name="keep-bodies-awake", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _step(step: str, where: str, fn: Callable[..., object], *args: object) -> None:

@@ -68,6 +68,14 @@ def plan_scene(rig: RigConfig) -> list[Shot]:
     return shots
 
 
+def file_mode() -> int:
+    """The mode a new file gets under this process's umask (0o666 & ~umask, e.g. 0o644), as cameras' files do;
+    temporary files are created 0600 and get this mode before their final rename."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def now_iso() -> str:
     return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
 
@@ -112,6 +120,17 @@ class RawSessionWriter:
                 "complete": False, **(extra or {}),
             }
         self._by_path = {f["path"]: f for f in self.manifest["files"]}
+        self._remove_stale_temporaries()
+
+    def _remove_stale_temporaries(self) -> None:
+        """Delete what a killed run left under temporary names (``.manifest.json.*``, ``camN/.<file>.*``): never
+        a captured file, which only exists under its final name."""
+        if not self.dir.is_dir():
+            return
+        stale = [*self.dir.glob(".manifest.json.*"), *self.dir.glob(f"*/.*.{self.ext}")]
+        for path in stale:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
 
     # ------------------------------------------------------------------ state
     def relpath(self, camera: str, shot: Shot) -> str:
@@ -132,6 +151,7 @@ class RawSessionWriter:
         self.manifest["updated"] = now_iso()
         try:
             write_json_atomic(self.manifest_path, self.manifest)
+            os.chmod(self.manifest_path, file_mode())
         except OSError as exc:
             raise _storage_error(exc, self.manifest_path) from exc
 
@@ -164,6 +184,7 @@ class RawSessionWriter:
                     check(tmp)
                 if final.exists():
                     raise BadInputError("appeared while writing; never overwritten", where=final)
+                os.chmod(tmp, file_mode())
                 os.replace(tmp, final)
             except OSError as exc:
                 raise _storage_error(exc, final) from exc

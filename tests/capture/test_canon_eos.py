@@ -181,3 +181,21 @@ def test_failed_or_silent_autofocus_is_a_device_fault_naming_the_body(body: Body
     body.core.faults.af_result = "ok"
     body.camera.focus_at((30, 10))  # confirmed this time
     assert body.camera.state.focus == 1 and body.core.focus_distance_m is not None
+
+
+def test_bodies_get_keep_alive_while_the_operator_is_prompted(body: Body) -> None:
+    import dataclasses
+    import time
+
+    from dp5k_capture.capture import OperatorBoard, keep_bodies_awake
+
+    body.camera.timing = dataclasses.replace(FAST, keepalive_s=0.05)
+    body.camera.open()
+    before = body.core.op_log.count(Op.EOS_KEEP_DEVICE_ON)
+    board = OperatorBoard(lambda msg: time.sleep(0.4))  # the operator takes a while to press Enter
+    with keep_bodies_awake([body.camera]):
+        board.place(0)
+    sent = body.core.op_log.count(Op.EOS_KEEP_DEVICE_ON) - before
+    assert sent >= 3
+    time.sleep(0.15)
+    assert body.core.op_log.count(Op.EOS_KEEP_DEVICE_ON) - before == sent  # stopped with the prompt
