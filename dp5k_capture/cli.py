@@ -68,7 +68,7 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
     spec = SimSpec(scale, seed, faults=sim_faults, server=sim_rig) if sim else None
     try:
         result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, click.exceptions.Abort):  # click.prompt turns a Ctrl-C at the board prompt into Abort
         click.echo(f"dp5k: interrupted: {_kept(out / scene)}; run the same command again to resume", err=True)
         click.get_current_context().exit(130)
     click.echo(f"{result.dir}: complete ({result.written} files captured now)")

@@ -79,7 +79,8 @@ def capture_scene(scene: str, out: Path, rig: RigConfig, *, sim: SimSpec | None 
         scene: scene name (validated by the session writer).
         out: the raw session root (``--out``).
         rig: the rig (``rig.toml``); for ``sim`` its exposure plan and ids are kept, serials and ports replaced.
-        sim: simulate the rig (bodies on a simulated USB bus, projector on a pty, the virtual studio).
+        sim: simulate the rig (bodies on a simulated USB bus, projector on a pty, the virtual studio), in this
+            process or, with ``sim.server``, in a sim-rig server process.
         prompt: how the operator is asked to move the ChArUco board on the real rig (shows a message, waits).
         session: PTP session bounds for the bodies (default: rig.toml ``[timeouts] transaction_s``).
         timing: EOS capture-loop bounds (default: rig.toml ``[timeouts]``).

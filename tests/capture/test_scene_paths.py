@@ -71,3 +71,25 @@ def test_missing_out_is_created_only_for_a_real_run(tmp_path: Path) -> None:
     res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--rig", str(_rig(tmp_path))])
     assert res.exit_code == 5 and "ttyUSB9" in res.output  # the folder was made, then the (missing) projector failed
     assert out.is_dir() and not any(out.iterdir())
+
+
+def test_ctrl_c_at_the_board_prompt_says_what_was_kept(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """click.prompt turns Ctrl-C into Abort: the capture still ends with the one resume line and exit code 130."""
+    import dp5k_capture.session_run as session_run
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(session_run, "capture_scene", interrupted)
+    out = tmp_path / "raw"
+    res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--sim"])
+    assert res.exit_code == 130 and res.output.strip().splitlines() == [
+        f"dp5k: interrupted: no file was captured in {out / 's1'}; run the same command again to resume"]
+    import click
+
+    def aborted(*args: object, **kwargs: object) -> None:
+        raise click.exceptions.Abort()
+
+    monkeypatch.setattr(session_run, "capture_scene", aborted)
+    res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--sim"])
+    assert res.exit_code == 130 and "run the same command again to resume" in res.output and "Aborted" not in res.output
