@@ -3,7 +3,8 @@
 Prints a table. Targets: a 70 MB Dual Pixel RAW (the 5D Mark IV's size) crosses the client's PTP layer (pyusb,
 containers, 1 MiB GetPartialObject, simulated body included) at >= 100 MB/s on the dev machine, so a scene's
 110 raws (~7.7 GB on the rig) cost the client ~1 min and the rig is bound by the camera and cable; GetEvent
-parsing > 50k records/s; a simulated demo scene (110 files, studio scale 60) well under a minute.
+parsing > 50k records/s; a simulated demo scene (110 files, studio scale 60) well under a minute; a flat-world
+scene with the bodies in a sim-rig server process within 2x the same scene with in-process bodies.
 
     .venv/bin/python benchmarks/bench_capture.py
 """
@@ -75,11 +76,70 @@ def bench_scene() -> tuple[str, float, str]:
     return "simulated scene demo01 (110 files, scale 60)", dt, "s"
 
 
+def _flat_scene_in_process(out: str) -> None:
+    """The peer of the served scene: the same flat world and client code, the bodies in this process."""
+    from dp5k_capture.capture import RigDevices, run_scene
+    from dp5k_capture.devices import open_bodies
+    from dp5k_capture.escvp21 import EpsonProjector, EscVp21Timing
+    from dp5k_capture.rawsession import RawSessionWriter
+    from dp5k_capture.sim.server import FLAT_RAW_SIZE_PX
+    from dp5k_capture.sim.world import make_sim_rig, write_ground_truth_once
+
+    sim = make_sim_rig(raw_size_px=FLAT_RAW_SIZE_PX)
+    try:
+        writer = RawSessionWriter(out, "flat", sim.rig, "dng", extra={"simulated": True})
+        proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.05))
+        assert sim.window is not None
+        devices = RigDevices(open_bodies(sim.rig, backend=sim.backend), proj, sim.window, sim.optics)
+        try:
+            run_scene(sim.rig, devices, writer, before_complete=lambda d: write_ground_truth_once(sim.optics, d))
+        finally:
+            devices.close()
+    finally:
+        sim.close()
+
+
+def bench_served_scene() -> list[tuple[str, float, str]]:
+    """A whole flat-world scene with the bodies in a sim-rig server process (every USB call crosses a Unix
+    socket) against the same scene with the bodies in-process (the floor)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from dp5k_capture.session_run import SimSpec, capture_scene
+    from dp5k_capture.rig import RigConfig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        _flat_scene_in_process(tmp)
+        floor = time.perf_counter() - t0
+        sock = Path(tmp) / "rig.sock"
+        server = subprocess.Popen([sys.executable, "-m", "dp5k_capture.sim.server", "--socket", str(sock), "--world", "flat"],
+                                  stdout=subprocess.DEVNULL)
+        try:
+            while not sock.exists():
+                time.sleep(0.05)
+            t0 = time.perf_counter()
+            capture_scene("served", Path(tmp), RigConfig(), sim=SimSpec(server=sock))
+            served = time.perf_counter() - t0
+        finally:
+            server.terminate()
+            server.wait(10)
+    return [("flat scene, bodies in-process (110 files; floor)", floor, "s"),
+            ("flat scene, bodies in a sim-rig server (--sim-rig)", served, "s")]
+
+
 def main_() -> None:
-    rows = [bench_download(), bench_events(), bench_scene()]
-    print(f"{'benchmark':<52} {'value':>12}  unit")
-    for name, value, unit in rows:
-        print(f"{name:<52} {value:>12.1f}  {unit}")
+    import datetime
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip() or "?"
+    print(f"{datetime.datetime.now().isoformat(timespec='seconds')}  commit {commit}  {os.cpu_count()} cores")
+    print(f"{'benchmark':<52} {'value':>12}  unit       load (1 min)")
+    for bench in (bench_download, bench_events, bench_scene, bench_served_scene):
+        out = bench()
+        for name, value, unit in out if isinstance(out, list) else [out]:
+            print(f"{name:<52} {value:>12.1f}  {unit:<10} {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

@@ -4,9 +4,10 @@ Sequence (after libgphoto2's camera_prepare_canon_eos_capture / trigger / downlo
 docs/capture.md): OpenSession(1) with tid 0, GetDeviceInfo, SetRemoteMode(1), SetEventMode(1), GetEvent
 until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableShots > 0, image quality
 RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
-DoAf, AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
+DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
 RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
-(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. Never CloseSession (a 5D
+(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. With capture to the card:
+ObjectAddedEx, GetObjectInfo, GetPartialObject chunks, and DeleteObject only after the file is verified. Never CloseSession (a 5D
 Mark IV answers OperationNotSupported to everything after it).
 """
 
@@ -23,7 +24,9 @@ from dp5k_common.errors import DeviceError
 
 from .ptp.codes import (
     CANON_VID,
+    CAPTURE_DEST_CARD,
     CAPTURE_DEST_PC,
+    OFC_ASSOCIATION,
     EVF_OUTPUT_PC,
     EosEvent,
     EosProp,
@@ -34,7 +37,9 @@ from .ptp.codes import (
 )
 from .ptp.datasets import DeviceInfo
 from .ptp.eos_events import EosRecord, parse_events
+from .ptp.olc import FOCUS_FAILED, FOCUS_IN_FOCUS, OLC_FIELD_SIZES, OLC_REQUEST_ALL
 from .ptp.session import PTPSession
+from .rig import TimeoutConfig
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +53,25 @@ class CaptureTiming:
     """Bounds of the capture loop.
 
     Attributes:
-        prop_echo_s: how long to wait for GetEvent to echo a property we set.
-        object_s: how long to wait for the new object after a release (libgphoto2: 90 s).
+        prop_echo_s: how long to wait for GetEvent to confirm a setting (rig.toml ``[timeouts] settings_s``).
+        object_s: how long to wait for the new object after a release (``capture_s``; libgphoto2: 90-100 s).
         poll_s: pause between GetEvent polls.
         keepalive_s: KeepDeviceOn interval while waiting.
-        af_settle_s: wait after DoAf before AfCancel.
+        af_settle_s: wait after DoAf on a body that reports no AF result (no decodable OLC focus info).
+        focus_s: how long to wait for the AF result after DoAf (``focus_s``).
     """
 
-    prop_echo_s: float = 5.0
-    object_s: float = 90.0
+    prop_echo_s: float = 10.0
+    object_s: float = 100.0
     poll_s: float = 0.02
     keepalive_s: float = 10.0
     af_settle_s: float = 0.5
+    focus_s: float = 10.0
+
+    @classmethod
+    def from_timeouts(cls, t: TimeoutConfig) -> CaptureTiming:
+        """The capture-loop bounds of rig.toml's ``[timeouts]``."""
+        return cls(prop_echo_s=t.settings_s, object_s=t.capture_s, focus_s=t.focus_s)
 
 
 @dataclass
@@ -69,6 +81,7 @@ class Download:
     filename: str
     data: bytes
     handle: int
+    on_card: bool = False
 
 
 @dataclass
@@ -78,6 +91,8 @@ class EosState:
     props: dict[int, int | str] = field(default_factory=dict)
     avail: dict[int, list[int]] = field(default_factory=dict)
     busy: bool = False
+    focus: int | None = None  # last AF state from OLC focus info: 0 searching, 1 in focus, 2 failed
+    olc: bool = False  # SetRequestOLCInfoGroup was sent: settings and AF state come as OLCInfoChanged
 
 
 class EosCamera:
@@ -87,10 +102,15 @@ class EosCamera:
         session: an unopened PTP session on the body's transport.
         usb_id: (vendor, product) from the USB descriptor; identifies Canon (DeviceInfo says vendor 6).
         timing: bounds of the capture loop.
+        destination: ``pc`` (raws go straight to the PC) or ``card`` (written to the card, then downloaded).
+        delete_from_card: with ``card``, :meth:`release_card_copy` deletes the card file (after a verified download).
     """
 
-    def __init__(self, session: PTPSession, usb_id: tuple[int, int] | None = None, timing: CaptureTiming | None = None) -> None:
+    def __init__(self, session: PTPSession, usb_id: tuple[int, int] | None = None, timing: CaptureTiming | None = None,
+                 *, destination: str = "pc", delete_from_card: bool = False) -> None:
         self.session = session
+        self.destination = destination
+        self.delete_from_card = delete_from_card
         self.usb_id = usb_id
         self.timing = timing or CaptureTiming()
         self.state = EosState()
@@ -117,35 +137,61 @@ class EosCamera:
                 raise DeviceError(f"body does not support operation 0x{op:04X} ({Op(op).name})", where=self.name)
         self.session.transaction(Op.EOS_SET_REMOTE_MODE, (1,))
         self.session.transaction(Op.EOS_SET_EVENT_MODE, (1,))
+        if Op.EOS_SET_REQUEST_OLC_INFO_GROUP in self.info.operations:  # as libgphoto2: settings + AF come back as events
+            self.session.transaction(Op.EOS_SET_REQUEST_OLC_INFO_GROUP, (OLC_REQUEST_ALL,))
+            self.state.olc = True
         self.poll_events()
-        self.set_capture_to_pc()
+        if self.pending:  # announced to a client before us (killed mid-download): not a shot of ours
+            log.warning("%s: ignoring %d image(s) announced before this session: %s", self.name, len(self.pending),
+                        ", ".join(r.filename or "?" for r in self.pending))
+            self.pending.clear()
+        if self.destination == "card":
+            self.set_capture_to_card()
+        else:
+            self.set_capture_to_pc()
         self.set_raw_quality()
         return self.info
 
     def close(self) -> None:
-        """Leave remote mode (event mode 0, remote mode 0). Never CloseSession on bodies that break on it."""
+        """Leave remote mode, also after Ctrl-C mid-transfer: Cancel the unfinished transaction and drain its
+        data, then SetEventMode(0) and SetRemoteMode(0) (each tried even if the other fails). Never
+        CloseSession on bodies that break on it."""
+        self.session.abort_unfinished()
+        for op, step in ((Op.EOS_SET_EVENT_MODE, "event mode off"), (Op.EOS_SET_REMOTE_MODE, "remote mode off")):
+            try:
+                self.session.transaction(op, (0,))
+            except DeviceError as exc:
+                log.warning("%s: %s failed: %s", self.name, step, exc)
         try:
-            self.session.transaction(Op.EOS_SET_EVENT_MODE, (0,))
-            self.session.transaction(Op.EOS_SET_REMOTE_MODE, (0,))
             self.session.close_session()
         except DeviceError as exc:
-            log.warning("%s: leaving remote mode failed: %s", self.name, exc)
+            log.warning("%s: CloseSession failed: %s", self.name, exc)
 
     # ------------------------------------------------------------------ events
     def poll_events(self) -> list[EosRecord]:
         """One GetEvent; applies property changes to :attr:`state`; object events go to :attr:`pending`."""
         data = self.session.transaction(Op.EOS_GET_EVENT, data_in=True).data
-        records = parse_events(data, where=self.name)
+        records = parse_events(data, where=self.name, olc_version=self._olc_version())
         for rec in records:
-            if rec.code == EosEvent.PROP_VALUE_CHANGED and rec.prop is not None:
+            if rec.code == EosEvent.OLC_INFO_CHANGED and rec.focus is not None:
+                self.state.focus = rec.focus
+            elif rec.code == EosEvent.PROP_VALUE_CHANGED and rec.prop is not None:
                 self.state.props[rec.prop] = rec.value  # type: ignore[assignment]
             elif rec.code == EosEvent.AVAIL_LIST_CHANGED and rec.prop is not None:
                 self.state.avail[rec.prop] = rec.values
             elif rec.code == EosEvent.CAMERA_STATUS_CHANGED:
                 self.state.busy = rec.status == 1
-            elif rec.code in (EosEvent.REQUEST_OBJECT_TRANSFER, EosEvent.OBJECT_ADDED_EX):
-                self.pending.append(rec)
+            elif rec.code == EosEvent.REQUEST_OBJECT_TRANSFER or (rec.code == EosEvent.OBJECT_ADDED_EX and rec.ofc != OFC_ASSOCIATION):
+                self.pending.append(rec)  # a new folder on the card (OFC association) is not an image
         return records
+
+    def _olc_version(self) -> int:
+        value = self.state.props.get(EosProp.OLC_INFO_VERSION, 0)
+        return value if isinstance(value, int) else 0
+
+    def reports_af_result(self) -> bool:
+        """The body sends its AF state (OLC requested, and its OLC version is one we can decode)."""
+        return self.state.olc and self._olc_version() in OLC_FIELD_SIZES
 
     def keep_alive(self) -> None:
         """KeepDeviceOn (0x911D) when the interval has passed."""
@@ -154,14 +200,15 @@ class EosCamera:
             self.session.transaction(Op.EOS_KEEP_DEVICE_ON)
             self._last_keepalive = now
 
-    def _wait(self, what: str, done: Callable[[], bool], timeout_s: float) -> None:
+    def _wait(self, what: str, done: Callable[[], bool], timeout_s: float, key: str = "settings_s") -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             self.poll_events()
             if done():
                 return
             if time.monotonic() > deadline:
-                raise DeviceError(f"{what}: no confirmation from the body within {timeout_s:g} s", where=self.name)
+                raise DeviceError(f"{what}: no confirmation from the body within {timeout_s:g} s "
+                                  f"(rig.toml [timeouts] {key})", where=self.name)
             self.keep_alive()
             time.sleep(self.timing.poll_s)
 
@@ -200,6 +247,16 @@ class EosCamera:
         self.session.transaction(Op.EOS_PC_HDD_CAPACITY, (0x0FFFFFFF, 0x1000, 1))
         self._wait("PC capture", lambda: int(self.state.props.get(EosProp.AVAILABLE_SHOTS, 0) or 0) > 0, self.timing.prop_echo_s)
 
+    def set_capture_to_card(self) -> None:
+        """CaptureDestination = the body's card value (the first offered value that is not PC, as libgphoto2
+        picks it), then wait until AvailableShots > 0 (a card is in and has room)."""
+        offered = [v for v in self.state.avail.get(EosProp.CAPTURE_DESTINATION, []) if v != CAPTURE_DEST_PC]
+        card = offered[0] if offered else CAPTURE_DEST_CARD
+        if self.state.props.get(EosProp.CAPTURE_DESTINATION) != card:
+            self.set_prop(EosProp.CAPTURE_DESTINATION, card, "capture destination card")
+        self._wait("card capture (is a card in, with room?)",
+                   lambda: int(self.state.props.get(EosProp.AVAILABLE_SHOTS, 0) or 0) > 0, self.timing.prop_echo_s)
+
     def set_raw_quality(self) -> None:
         """ImageFormat = one full-size RAW (Dual Pixel RAW itself is a menu setting; files are verified)."""
         kind, size, comp = RAW_IMAGE_FORMAT
@@ -210,17 +267,34 @@ class EosCamera:
 
     # ------------------------------------------------------------------ focus
     def focus_at(self, point_px: tuple[int, int]) -> None:
-        """Autofocus once at ``point_px`` (raw pixels): live view on, ZoomPosition, DoAf, AfCancel, live view off."""
+        """Autofocus once at ``point_px`` (raw pixels) and confirm it: live view on, ZoomPosition, DoAf, wait for
+        the body's AF result in its events (OLC focus info), AfCancel, live view off.
+
+        Raises:
+            DeviceError: the body reports a failed AF, or no result within ``focus_s`` (naming the body).
+        """
         x, y = int(round(point_px[0])), int(round(point_px[1]))
         self.set_prop(EosProp.EVF_OUTPUT_DEVICE, EVF_OUTPUT_PC, "live view on")
         self.session.transaction(Op.EOS_ZOOM_POSITION, (x, y))
+        self.state.focus = None
         self.session.transaction(Op.EOS_DO_AF)
-        deadline = time.monotonic() + self.timing.af_settle_s
-        while time.monotonic() < deadline:
-            self.poll_events()
-            time.sleep(self.timing.poll_s)
-        self.session.transaction(Op.EOS_AF_CANCEL)
-        self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        try:
+            if self.reports_af_result():
+                self._wait(f"autofocus at ({x}, {y}) px: AF result", lambda: self.state.focus in (FOCUS_IN_FOCUS, FOCUS_FAILED),
+                           self.timing.focus_s, "focus_s")
+            else:
+                log.warning("%s: the body reports no AF result (OLC version %d): waiting %g s after DoAf",
+                            self.name, self._olc_version(), self.timing.af_settle_s)
+                deadline = time.monotonic() + self.timing.af_settle_s
+                while time.monotonic() < deadline:
+                    self.poll_events()
+                    time.sleep(self.timing.poll_s)
+        finally:
+            self.session.transaction(Op.EOS_AF_CANCEL)
+            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        if self.state.focus == FOCUS_FAILED:
+            raise DeviceError(f"autofocus at ({x}, {y}) px failed: the body found no focus there (low contrast, closer "
+                              "than the lens focuses, or lens switch on MF); capture stops before any shot of this run", where=self.name)
         self.focus_point_px = (x, y)
 
     # ------------------------------------------------------------------ capture
@@ -238,14 +312,20 @@ class EosCamera:
         return self.pending.pop(0)
 
     def download(self, rec: EosRecord) -> Download:
-        """Download the announced object in 1 MiB GetPartialObject chunks; release it from the body.
+        """Download the announced object in 1 MiB GetPartialObject chunks.
 
-        A PC capture ends with TransferComplete (the body frees its buffer); a card capture is deleted.
+        A PC capture ends with TransferComplete (the body frees its buffer). A card capture is first looked up
+        with GetObjectInfo (its size on the card) and stays on the card: :meth:`release_card_copy` deletes it
+        once the caller has verified and stored the file.
         """
         assert rec.handle is not None
+        on_card = rec.code == EosEvent.OBJECT_ADDED_EX
         total = int(rec.size or 0)
-        if total <= 0:
-            total = self.session.get_object_info(rec.handle).compressed_size
+        if on_card or total <= 0:
+            info = self.session.get_object_info(rec.handle)
+            if total > 0 and info.compressed_size != total:
+                raise DeviceError(f"card file {info.filename}: ObjectInfo says {info.compressed_size} bytes, the event {total}", where=self.name)
+            total = info.compressed_size
         buf = bytearray()
         while len(buf) < total:
             chunk = self.session.get_partial_object(rec.handle, len(buf), min(CHUNK_BYTES, total - len(buf)))
@@ -253,11 +333,14 @@ class EosCamera:
                 raise DeviceError(f"download of {rec.filename}: body sent 0 bytes at offset {len(buf)}", where=self.name)
             buf += chunk
             self.keep_alive()
-        if rec.code == EosEvent.REQUEST_OBJECT_TRANSFER:
+        if not on_card:
             self.session.transaction(Op.EOS_TRANSFER_COMPLETE, (rec.handle,))
-        else:
-            self.session.delete_object(rec.handle)
-        return Download(rec.filename or f"{rec.handle:08x}", bytes(buf), rec.handle)
+        return Download(rec.filename or f"{rec.handle:08x}", bytes(buf), rec.handle, on_card)
+
+    def release_card_copy(self, dl: Download) -> None:
+        """Delete a downloaded card file if ``delete_from_card`` (call only after the download is verified)."""
+        if dl.on_card and self.delete_from_card:
+            self.session.delete_object(dl.handle)
 
     def capture(self, f_number: float, shutter_s: float, iso: int) -> Download:
         """Set the exposure, release without refocusing and download the new raw file."""

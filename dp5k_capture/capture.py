@@ -11,7 +11,9 @@ skipped when the scene is resumed.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -27,6 +29,8 @@ from .rawsession import RawSessionWriter, Shot, plan_scene
 from .rig import RigConfig
 
 log = logging.getLogger(__name__)
+
+KEEPALIVE_DEFAULT_S = 10.0  # KeepDeviceOn interval (s) when there are no bodies to take it from
 
 
 class BoardPositioner(Protocol):
@@ -104,15 +108,20 @@ def _shutter_text(s: float) -> str:
     return f"{s:g} s" if s >= 0.3 else f"1/{round(1 / s)} s"
 
 
-def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, check_dp: bool = True) -> int:
+def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, check_dp: bool = True,
+              before_complete: Callable[[Path], None] | None = None) -> int:
     """Capture (or resume) one scene. Returns the number of files written now.
 
     Errors name the device and the step (``cam1 (...): dp_f2.8: ...``); files completed before the
-    error are kept and the next run resumes after them.
+    error are kept and the next run resumes after them. ``before_complete(session_dir)`` runs after the
+    last shot and before the session is marked complete (the simulated rig writes ``ground_truth/`` there),
+    so an interruption in between leaves an incomplete session that the next run finishes.
     """
     shots = plan_scene(rig)
     todo = [(s, b.id) for s in shots for b in rig.bodies if not writer.done(b.id, s)]
     if not todo:
+        if before_complete is not None:
+            before_complete(writer.dir)
         writer.finish(rig)
         return 0
     proj = devices.projector
@@ -132,10 +141,12 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
             if not pending:
                 continue
             if shot.kind == "charuco":
-                devices.board.place(int(shot.index or 0))
+                with keep_bodies_awake(devices.bodies.values()):
+                    devices.board.place(int(shot.index or 0))
                 board_out = False
             elif not board_out:
-                devices.board.clear()
+                with keep_bodies_awake(devices.bodies.values()):
+                    devices.board.clear()
                 board_out = True
             if shot.kind == "sl":
                 if blanked:
@@ -148,12 +159,41 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
                 written += 1
                 bar.update(1)
         if not board_out:
-            devices.board.clear()
+            with keep_bodies_awake(devices.bodies.values()):
+                devices.board.clear()
         _step("blank projector", proj.name, proj.blank, True)
     finally:
         bar.close()
+    if before_complete is not None:
+        before_complete(writer.dir)
     writer.finish(rig)
     return written
+
+
+@contextmanager
+def keep_bodies_awake(bodies: Iterable[EosCamera]) -> Iterator[None]:
+    """While the operator is prompted (the main thread waits for Enter), send KeepDeviceOn to each body every
+    ``keepalive_s`` from a helper thread, so no body powers down. The bodies are idle meanwhile: only this
+    thread talks to them. A failure is logged; the next shot reports the body's state."""
+    cams = list(bodies)
+    stop = threading.Event()
+
+    def run() -> None:
+        interval_s = min((c.timing.keepalive_s for c in cams), default=KEEPALIVE_DEFAULT_S)
+        while not stop.wait(interval_s):
+            for cam in cams:
+                try:
+                    cam.keep_alive()
+                except DP5KError as exc:
+                    log.warning("%s: keep-alive while waiting for the operator: %s", cam.name, exc)
+
+    thread = threading.Thread(target=run, name="keep-bodies-awake", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _step(step: str, where: str, fn: Callable[..., object], *args: object) -> None:
@@ -169,6 +209,7 @@ def _shoot(cam: EosCamera, cam_id: str, shot: Shot, writer: RawSessionWriter, ch
         dl = cam.capture(shot.f_number, shot.shutter_s, shot.iso)
         meta = {"camera_filename": dl.filename, "focus_point_px": list(cam.focus_point_px or ())}
         writer.add(cam_id, shot, dl.data, meta, check=dual_pixel_check(cam.name) if check_dp else None)
+        cam.release_card_copy(dl)  # capture to card: delete the card file only now that it is verified and stored
     except DP5KError as exc:
         if not exc.message.startswith(shot.stem):
             exc.message = f"{shot.stem}: {exc.message}"

@@ -3,45 +3,51 @@
 from __future__ import annotations
 
 import logging
-import zlib
 from pathlib import Path
 
 import click
 
-from dp5k_common.errors import BadInputError, DatasetFormatError
+from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 
 log = logging.getLogger(__name__)
 
 
-def _sim_scene(scene: str) -> str | int:
-    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
-    from dp5k_studio import PRESETS
-
-    if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
-        return scene
-    return zlib.crc32(scene.encode()) % 100000
-
-
 @click.command("capture")
-@click.option("--scene", required=True, help="Scene name (folder under --out): letters, digits, '.', '_', '-'.")
+@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("raw"), show_default=True,
-              help="Raw session root; the scene goes to OUT/SCENE.")
+              help="Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is writable); an unwritable OUT is refused before any device is touched.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
 @click.option("--sim-scale", default="small", show_default=True, help="Studio scale for --sim: small (336x224 raw, the smallest that processing calibrates reliably), medium, paper, or a sensor downscale factor.")
 @click.option("--seed", default=0, show_default=True, help="Studio seed for --sim.")
+@click.option("--sim-faults", default="", help="Faults of the simulated bodies, e.g. 'disconnect@37,busy=0.1' or 'cam1.hang@5' "
+              "(disconnect/stall/hang@K: during the K-th raw download; busy=P: DeviceBusy with probability P; CAM. = one body).")
+@click.option("--sim-rig", "sim_rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Unix socket of a simulated rig running in its own process (python -m dp5k_capture.sim.server); "
+              "its bodies outlive this command, as real ones do. Implies --sim.")
 @click.option("--dry-run", is_flag=True, help="Print the plan (and what a resume would skip); touch nothing.")
-def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, dry_run: bool) -> None:
+def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim_scale: str, seed: int, sim_faults: str,
+                    sim_rig: Path | None, dry_run: bool) -> None:
     """Capture one scene: 10 DP + 2 sharp raws, 6 ChArUco, 92 structured-light images (2 bodies).
 
     Resumes an interrupted scene; never overwrites a captured file; errors name the device and step.
     """
     from .capture import describe_plan
+    from .paths import check_out_dir, check_scene_name
     from .rig import RigConfig, load_rig
     from .rawsession import FORMAT
 
+    check_scene_name(scene)
+    check_out_dir(out, create=False)
+    sim = sim or sim_rig is not None
+    if sim_faults and not sim:
+        raise BadInputError("fault injection needs the simulated rig (--sim or --sim-rig)", where="--sim-faults")
     rig = load_rig(rig_path) if rig_path else RigConfig()
+    if sim_faults:
+        from .sim.fault_spec import parse_sim_faults
+
+        parse_sim_faults(sim_faults, tuple(b.id for b in rig.bodies))  # a typo fails before anything starts
     if dry_run:
         for line in describe_plan(rig, scene, out, "dng" if sim else "CR2"):
             click.echo(line)
@@ -56,62 +62,27 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
         if sim:
             click.echo("simulated rig: bodies and raw sizes come from the studio at run time")
         return
-    scale: float | str = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
-    if sim:
-        _capture_sim(scene, out, rig, scale, seed)
-    else:
-        _capture_real(scene, out, rig)
+    from .session_run import SimSpec, capture_scene
 
-
-def _capture_sim(scene: str, out: Path, rig, scale, seed: int) -> None:  # type: ignore[no-untyped-def]
-    from .capture import RigDevices, run_scene
-    from .devices import open_bodies
-    from .escvp21 import EpsonProjector, EscVp21Timing
-    from .rawsession import RawSessionWriter
-    from .sim.world import StudioOptics, make_sim_rig
-
-    sim = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(_sim_scene(scene), proj, scale, seed), seed=seed)
+    scale = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
+    spec = SimSpec(scale, seed, faults=sim_faults, server=sim_rig) if sim else None
     try:
-        writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True, "studio": {"scene": str(_sim_scene(scene)), "scale": scale, "seed": seed}})
-        projector = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.05))
-        bodies = open_bodies(sim.rig, backend=sim.backend)
-        devices = RigDevices(bodies, projector, sim.window, sim.optics)
-        try:
-            n = run_scene(sim.rig, devices, writer)
-        finally:
-            devices.close()
-        gt = writer.dir / "ground_truth"
-        if not gt.exists():
-            sim.optics.write_ground_truth(gt)
-    finally:
-        sim.close()
-    click.echo(f"{writer.dir}: complete ({n} files captured now)")
+        result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+    except (KeyboardInterrupt, click.exceptions.Abort):  # click.prompt turns a Ctrl-C at the board prompt into Abort
+        click.echo(f"dp5k: interrupted: {_kept(out / scene)}; run the same command again to resume", err=True)
+        click.get_current_context().exit(130)
+    click.echo(f"{result.dir}: complete ({result.written} files captured now)")
 
 
-def _capture_real(scene: str, out: Path, rig) -> None:  # type: ignore[no-untyped-def]
-    from .capture import OperatorBoard, RigDevices, run_scene
-    from .devices import open_bodies
-    from .display import PatternWindow
-    from .escvp21 import EpsonProjector
-    from .rawsession import RawSessionWriter
+def _kept(session_dir: Path) -> str:
+    """What an interrupted capture left: the completed files recorded in the manifest."""
+    from dp5k_common.io import read_json
 
-    if not all(b.serial for b in rig.bodies) and len(rig.bodies) == 2:
-        log.warning("rig.toml gives no body serials: bodies are taken in USB order")
-    writer = RawSessionWriter(out, scene, rig, "CR2", extra={"simulated": False})
-    projector = EpsonProjector(rig.projector.port)
-    window = PatternWindow(rig.projector.width, rig.projector.height, rig.projector.display_index, rig.projector.settle_s)
     try:
-        bodies = open_bodies(rig)
-    except BaseException:
-        projector.close()
-        window.close()
-        raise
-    devices = RigDevices(bodies, projector, window, OperatorBoard(lambda msg: click.prompt(msg, default="", show_default=False)))
-    try:
-        n = run_scene(rig, devices, writer)
-    finally:
-        devices.close()
-    click.echo(f"{writer.dir}: complete ({n} files captured now)")
+        n = len(read_json(session_dir / "manifest.json").get("files", []))
+    except (DP5KError, OSError, AttributeError):
+        n = 0
+    return f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
 
 
 @click.command("devices")

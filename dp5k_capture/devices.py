@@ -73,11 +73,13 @@ def serial_ports() -> list[str]:
     return [f"{p.device}  {p.description}" for p in list_ports.comports()]
 
 
-def open_body(found: FoundBody, cam_id: str, config: SessionConfig | None = None, timing: CaptureTiming | None = None) -> EosCamera:
-    """Open a PTP session on a found body and put it into EOS remote mode."""
+def open_body(found: FoundBody, cam_id: str, config: SessionConfig | None = None, timing: CaptureTiming | None = None,
+              *, destination: str = "pc", delete_from_card: bool = False) -> EosCamera:
+    """Open a PTP session on a found body and put it into EOS remote mode (capture to ``destination``)."""
     name = f"{cam_id} ({found.product or 'Canon'} serial {found.serial or '?'})"
     transport = UsbTransport(found.device, name)
-    cam = EosCamera(PTPSession(transport, config), (found.vid, found.pid), timing)
+    cam = EosCamera(PTPSession(transport, config), (found.vid, found.pid), timing, destination=destination,
+                    delete_from_card=delete_from_card)
     info = cam.open()
     if found.serial and info.serial_number and not info.serial_number.endswith(found.serial):
         raise DeviceError(f"DeviceInfo serial {info.serial_number} does not match USB serial {found.serial}", where=name)
@@ -86,7 +88,8 @@ def open_body(found: FoundBody, cam_id: str, config: SessionConfig | None = None
 
 def open_bodies(rig: RigConfig, backend: Any = None, config: SessionConfig | None = None,
                 timing: CaptureTiming | None = None) -> dict[str, EosCamera]:
-    """Open the rig's two bodies, matched by serial number (in rig order if no serials are configured)."""
+    """Open the rig's two bodies, matched by serial number (in rig order if no serials are configured), capturing to
+    the rig's ``capture_destination``."""
     found = find_bodies(backend)
     listing = "; ".join(f.line() for f in found) or "none"
     chosen: dict[str, FoundBody] = {}
@@ -104,7 +107,8 @@ def open_bodies(rig: RigConfig, backend: Any = None, config: SessionConfig | Non
     try:
         for cam_id, f in chosen.items():
             try:
-                cams[cam_id] = open_body(f, cam_id, config, timing)
+                cams[cam_id] = open_body(f, cam_id, config, timing, destination=rig.capture_destination,
+                                         delete_from_card=rig.delete_from_card)
             except usb.core.USBError as exc:
                 raise map_usb_error(exc, cam_id, "open") from exc
     except BaseException:

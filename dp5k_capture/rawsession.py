@@ -22,6 +22,7 @@ from typing import Any
 from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 from dp5k_common.io import read_json, sha256_file, write_json_atomic
 
+from .paths import check_scene_name
 from .patterns import projection_count
 from .rig import RigConfig
 
@@ -67,6 +68,14 @@ def plan_scene(rig: RigConfig) -> list[Shot]:
     return shots
 
 
+def file_mode() -> int:
+    """The mode a new file gets under this process's umask (0o666 & ~umask, e.g. 0o644), as cameras' files do;
+    temporary files are created 0600 and get this mode before their final rename."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def now_iso() -> str:
     return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
 
@@ -80,18 +89,18 @@ class RawSessionWriter:
 
     Args:
         root: the ``--out`` folder (``RAW``).
-        scene: scene name (folder-safe).
+        scene: scene name (one safe folder name, :func:`~dp5k_capture.paths.check_scene_name`).
         rig: the rig (recorded in the manifest).
         ext: raw file extension (``CR2`` on the rig, ``dng`` from simulated bodies).
         extra: additional manifest keys (e.g. ``simulated``).
 
     Raises:
-        BadInputError: the scene is already complete (never overwritten), or its manifest is unreadable.
+        BadInputError: a hostile scene name, the scene is already complete (never overwritten), or its manifest
+            is unreadable.
     """
 
     def __init__(self, root: str | Path, scene: str, rig: RigConfig, ext: str, extra: dict[str, Any] | None = None) -> None:
-        if not scene or any(c not in "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-" for c in scene):
-            raise BadInputError(f"scene name {scene!r} must use letters, digits, '.', '_', '-'", where="--scene")
+        check_scene_name(scene)
         self.dir = Path(root) / scene
         self.scene = scene
         self.ext = ext
@@ -111,6 +120,17 @@ class RawSessionWriter:
                 "complete": False, **(extra or {}),
             }
         self._by_path = {f["path"]: f for f in self.manifest["files"]}
+        self._remove_stale_temporaries()
+
+    def _remove_stale_temporaries(self) -> None:
+        """Delete what a killed run left under temporary names (``.manifest.json.*``, ``camN/.<file>.*``): never
+        a captured file, which only exists under its final name."""
+        if not self.dir.is_dir():
+            return
+        stale = [*self.dir.glob(".manifest.json.*"), *self.dir.glob(f"*/.*.{self.ext}")]
+        for path in stale:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
 
     # ------------------------------------------------------------------ state
     def relpath(self, camera: str, shot: Shot) -> str:
@@ -131,6 +151,7 @@ class RawSessionWriter:
         self.manifest["updated"] = now_iso()
         try:
             write_json_atomic(self.manifest_path, self.manifest)
+            os.chmod(self.manifest_path, file_mode())
         except OSError as exc:
             raise _storage_error(exc, self.manifest_path) from exc
 
@@ -163,6 +184,7 @@ class RawSessionWriter:
                     check(tmp)
                 if final.exists():
                     raise BadInputError("appeared while writing; never overwritten", where=final)
+                os.chmod(tmp, file_mode())
                 os.replace(tmp, final)
             except OSError as exc:
                 raise _storage_error(exc, final) from exc
@@ -269,4 +291,6 @@ def verify_session(scene_dir: str | Path, *, check_dual_pixel: bool = True, rig:
     for b in bodies:
         if b not in manifest.get("focus_point_px", {}):
             problems.append(f"{b}: no focus point recorded")
+    if manifest.get("simulated") and not (scene_dir / "ground_truth" / "truth.json").is_file():
+        problems.append("ground_truth/truth.json: missing (a simulated session carries its ground truth)")
     return VerifyReport(counts, problems, sum(counts.values()), total)

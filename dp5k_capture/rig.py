@@ -2,6 +2,9 @@
 
 Example (all keys optional except the bodies' serials on a real rig)::
 
+    capture_destination = "pc"     # or "card": the body writes to its card, the client downloads the new file
+    delete_from_card = false       # "card": delete each card file after its download is verified
+
     [[body]]
     id = "cam0"
     serial = "012345678901"
@@ -22,6 +25,12 @@ Example (all keys optional except the bodies' serials on a real rig)::
     dp_f_numbers = [1.8, 2.0, 2.8, 4.0, 5.6]
     dp_shutter_s_at_f1_8 = 0.002   # scaled by (N / 1.8)^2 to keep the exposure constant
     sharp_f_number = 22.0
+
+    [timeouts]                 # seconds; libgphoto2-like defaults
+    transaction_s = 20.0       # one USB transaction
+    capture_s = 100.0          # release -> new raw announced
+    settings_s = 10.0          # Av/Tv/ISO confirmed by the body
+    focus_s = 10.0             # AF result
 """
 
 from __future__ import annotations
@@ -37,6 +46,8 @@ from typing import Any
 from dp5k_common.errors import BadInputError
 
 from .ptp.codes import av_code, tv_code, tv_seconds
+
+CAPTURE_DESTINATIONS = ("pc", "card")
 
 
 @dataclass(frozen=True)
@@ -97,13 +108,39 @@ class ExposureConfig:
 
 
 @dataclass(frozen=True)
+class TimeoutConfig:
+    """Time limits (seconds) of the body protocol (``[timeouts]`` in rig.toml). On expiry the error names the
+    step and the body. Defaults follow libgphoto2 (20 s per USB transaction, ~100 s for a capture).
+
+    Attributes:
+        transaction_s: one PTP transaction phase (command, data, response) on USB.
+        capture_s: after the release, until the body announces the new raw file.
+        settings_s: until the body confirms (echoes) an aperture, shutter, ISO or other setting.
+        focus_s: after DoAf, until the body reports its AF result (in focus, or failed).
+    """
+
+    transaction_s: float = 20.0
+    capture_s: float = 100.0
+    settings_s: float = 10.0
+    focus_s: float = 10.0
+
+
+@dataclass(frozen=True)
 class RigConfig:
-    """The whole rig."""
+    """The whole rig.
+
+    ``capture_destination``: ``pc`` (the body sends each raw straight to the PC, nothing on the card) or ``card``
+    (the body writes it to its card; the client downloads the new card file, and deletes it after a verified
+    download when ``delete_from_card``).
+    """
 
     bodies: tuple[BodyConfig, ...] = (BodyConfig("cam0"), BodyConfig("cam1"))
     projector: ProjectorConfig = field(default_factory=ProjectorConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
     aux_view: str = "left"
+    timeouts: TimeoutConfig = field(default_factory=TimeoutConfig)
+    capture_destination: str = "pc"
+    delete_from_card: bool = False
 
 
 def canon_shutter(shutter_s: float) -> float:
@@ -140,10 +177,13 @@ def load_rig(path: str | Path) -> RigConfig:
     bodies = tuple(_build(BodyConfig, b, f"{path} [[body]]") for b in raw.pop("body", [])) or RigConfig().bodies
     projector = _build(ProjectorConfig, raw.pop("projector", {}), f"{path} [projector]")
     exposure = _build(ExposureConfig, raw.pop("exposure", {}), f"{path} [exposure]")
+    timeouts = _build(TimeoutConfig, raw.pop("timeouts", {}), f"{path} [timeouts]")
     aux_view = raw.pop("aux_view", "left")
+    destination = raw.pop("capture_destination", "pc")
+    delete = raw.pop("delete_from_card", False)
     if raw:
-        raise BadInputError(f"unknown sections {sorted(raw)}", where=path)
-    rig = RigConfig(bodies, projector, exposure, aux_view)
+        raise BadInputError(f"unknown sections or keys {sorted(raw)}", where=path)
+    rig = RigConfig(bodies, projector, exposure, aux_view, timeouts, destination, delete)
     validate_rig(rig, str(path))
     return rig
 
@@ -168,7 +208,15 @@ def validate_rig(rig: RigConfig, where: str = "rig") -> None:
             raise BadInputError(f"body {b.id}: K must be a finite 3x3 matrix in raw px", where=where)
         if b.dist and (len(b.dist) not in (4, 5, 8) or not np.isfinite(np.asarray(b.dist, float)).all()):
             raise BadInputError(f"body {b.id}: dist must hold 4, 5 or 8 finite OpenCV coefficients", where=where)
+    if rig.capture_destination not in CAPTURE_DESTINATIONS:
+        raise BadInputError(f"capture_destination must be one of {', '.join(CAPTURE_DESTINATIONS)}, got {rig.capture_destination!r}", where=where)
+    if not isinstance(rig.delete_from_card, bool):
+        raise BadInputError(f"delete_from_card must be true or false, got {rig.delete_from_card!r}", where=where)
     if rig.aux_view not in ("left", "right"):
         raise BadInputError(f"aux_view must be left or right, got {rig.aux_view!r}", where=where)
     if not (math.isfinite(e.iso) and e.iso > 0):
         raise BadInputError(f"bad ISO {e.iso}", where=where)
+    for f in fields(TimeoutConfig):
+        limit = getattr(rig.timeouts, f.name)
+        if not (isinstance(limit, (int, float)) and math.isfinite(limit) and limit > 0):
+            raise BadInputError(f"[timeouts] {f.name} must be a positive number of seconds, got {limit!r}", where=where)

@@ -8,6 +8,8 @@ terminator ``size=8, code=0``. Offsets below are from the record start (libgphot
 * 0xC181 ObjectAddedEx: handle @8, storage @12, OFC u16 @16, size u32 @28, parent @32, filename @40
 * 0xC186 RequestObjectTransfer: handle @8, OFC @12, size @20, filename @28
 * 0xC18B CameraStatusChanged: status @8 (1 = busy)
+* 0xC1A5 OLCInfoChanged: Av/Tv/ISO and the AF state (:mod:`dp5k_capture.ptp.olc`), decoded with the OLC
+  version the body reported (property 0xD199), into PropValueChanged records and one record with ``focus``
 """
 
 from __future__ import annotations
@@ -15,8 +17,9 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
-from .codes import IMAGE_FORMAT_PROPS, STRING_PROPS, U32_PROPS, EosEvent
+from .codes import IMAGE_FORMAT_PROPS, STRING_PROPS, U32_PROPS, EosEvent, EosProp
 from .errors import ProtocolError
+from .olc import parse_olc
 
 MAX_RECORDS = 4096
 MAX_LIST = 1024
@@ -35,6 +38,7 @@ class EosRecord:
     size: int | None = None
     filename: str | None = None
     status: int | None = None
+    focus: int | None = None
 
 
 def _u32(rec: bytes, off: int) -> int:
@@ -58,8 +62,11 @@ def _image_format(rec: bytes, off: int) -> int:
     return ((kind & 0xFF) << 16) | ((size & 0xFF) << 8) | (comp & 0xFF)
 
 
-def parse_events(data: bytes, *, where: str | None = None) -> list[EosRecord]:
+def parse_events(data: bytes, *, where: str | None = None, olc_version: int = 0) -> list[EosRecord]:
     """Decode a GetEvent data phase. Stops at the terminator or the end of the buffer.
+
+    ``olc_version`` is the body's OLC version known so far (a PropValueChanged of 0xD199 in ``data``
+    updates it for the records after it); OLCInfoChanged records of an unknown version are kept undecoded.
 
     Raises:
         ProtocolError: a record whose size is < 8 or runs past the buffer, or a malformed body.
@@ -77,10 +84,25 @@ def parse_events(data: bytes, *, where: str | None = None) -> list[EosRecord]:
             raise ProtocolError(f"more than {MAX_RECORDS} event records", where=where)
         rec = data[pos : pos + size]
         try:
-            out.append(_decode(code, rec))
+            if code == EosEvent.OLC_INFO_CHANGED:
+                out += _decode_olc(rec, olc_version)
+            else:
+                out.append(_decode(code, rec))
+                if out[-1].prop == EosProp.OLC_INFO_VERSION and isinstance(out[-1].value, int):
+                    olc_version = out[-1].value
         except ProtocolError as exc:
             raise ProtocolError(f"event 0x{code:04X} at byte {pos}: {exc.message}", where=where) from exc
         pos += size
+    return out
+
+
+def _decode_olc(rec: bytes, version: int) -> list[EosRecord]:
+    info = parse_olc(rec, version)
+    if info is None:
+        return [EosRecord(EosEvent.OLC_INFO_CHANGED)]
+    out = [EosRecord(EosEvent.PROP_VALUE_CHANGED, prop=prop, value=value) for prop, value in info.props.items()]
+    if info.focus is not None:
+        out.append(EosRecord(EosEvent.OLC_INFO_CHANGED, focus=info.focus))
     return out
 
 

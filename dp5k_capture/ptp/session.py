@@ -19,7 +19,7 @@ from dp5k_common.errors import DeviceError
 from .codes import ContainerType, Op, Resp, name_of
 from .container import HEADER_LEN, MAX_CONTAINER_BYTES, Container, Header, parse_header, parse_params
 from .datasets import DeviceInfo, DevicePropDesc, ObjectInfo, StorageInfo, parse_u32_array
-from .errors import DeviceBusyError, PTPTimeoutError, ProtocolError, ResponseError, StallError
+from .errors import DeviceBusyError, DisconnectedError, PTPTimeoutError, ProtocolError, ResponseError, StallError
 from .transport import Transport
 
 log = logging.getLogger(__name__)
@@ -38,6 +38,8 @@ class SessionConfig:
         first_read: size of the first read of each container (one high-speed packet, as libgphoto2 does).
         chunk_read: size of the following reads of a long data phase.
         close_session: send CloseSession on close (False for bodies that break on it, e.g. the 5D Mark IV).
+        open_attempts: OpenSession tries; between two, Device Reset (0x66) and a drain of stale bulk-IN data.
+        drain_timeout_s: a drain read that waits this long for data ends the drain (the pipe is empty).
     """
 
     timeout_s: float = 5.0
@@ -49,6 +51,8 @@ class SessionConfig:
     first_read: int = 512
     chunk_read: int = 1 << 20
     close_session: bool = True
+    open_attempts: int = 3
+    drain_timeout_s: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,7 @@ class PTPSession:
         self._tid = 0
         self._pending = bytearray()
         self.op_log: list[int] = []
+        self.unfinished_tid: int | None = None  # a transaction left mid-way (Ctrl-C, an error): close() cancels it
 
     # ------------------------------------------------------------------ low level
     def _next_tid(self) -> int:
@@ -195,7 +200,9 @@ class PTPSession:
             tid = self._next_tid()
             self.op_log.append(op)
             try:
+                self.unfinished_tid = tid
                 res = self._once(op, tuple(params), data_out, data_in, tid, timeout_ms)
+                self.unfinished_tid = None
             except StallError as exc:
                 stalls += 1
                 if stalls > self.config.stall_retries:
@@ -208,7 +215,7 @@ class PTPSession:
                     self.transport.cancel(tid)
                 except DeviceError:
                     pass
-                raise PTPTimeoutError(f"{step}: {exc.message}", where=self.name) from exc
+                raise PTPTimeoutError(f"{step}: {exc.message} after {timeout_ms / 1000:g} s", where=self.name) from exc
             except DeviceError as exc:
                 if not exc.message.startswith(step):
                     exc.message = f"{step}: {exc.message}"
@@ -226,10 +233,67 @@ class PTPSession:
 
     # ------------------------------------------------------------------ standard operations
     def open_session(self, session_id: int = 1) -> None:
-        """OpenSession with transaction id 0; SessionAlreadyOpen counts as success."""
-        self._tid = 0
-        self.transaction(Op.OPEN_SESSION, (session_id,), ok=(Resp.OK, Resp.SESSION_ALREADY_OPEN))
+        """OpenSession with transaction id 0; SessionAlreadyOpen counts as success.
+
+        A body whose last client died mid-transaction (killed, Ctrl-C, unplugged cable) may still hold a
+        half-sent data phase, a halted pipe or an open session. As libgphoto2 does on open: clear the halts
+        first; when OpenSession fails, send the Still Image class Device Reset (0x66), drain the stale bulk-IN
+        data in big reads until a read times out, and try again (``open_attempts`` in all).
+        """
+        try:
+            self.transport.clear_halt()
+        except DisconnectedError:
+            raise
+        except DeviceError as exc:
+            log.debug("%s: clear halt before OpenSession: %s", self.name, exc)
+        for attempt in range(1, self.config.open_attempts + 1):
+            self._tid = 0
+            try:
+                self.transaction(Op.OPEN_SESSION, (session_id,), ok=(Resp.OK, Resp.SESSION_ALREADY_OPEN))
+                break
+            except DisconnectedError:
+                raise
+            except DeviceError as exc:
+                if attempt == self.config.open_attempts:
+                    exc.message = f"{exc.message} (after {attempt} tries, each after a Device Reset and a drain)"
+                    raise
+                log.warning("%s: OpenSession failed (%s): Device Reset, draining stale data, retrying", self.name, exc.message)
+                self.transport.device_reset()
+                self.drain()
+        self.unfinished_tid = None
         self.session_id = session_id
+
+    def drain(self) -> int:
+        """Read and drop what the device still has queued on bulk IN, in ``chunk_read`` reads (1 MiB: a stale
+        GetPartialObject chunk goes in one read, not 2,000 of 512 bytes) until one times out; bounded by
+        ``max_data_bytes``. Returns the number of bytes dropped."""
+        self._pending.clear()
+        dropped = 0
+        timeout_ms = self._timeout_ms(self.config.drain_timeout_s)
+        while dropped <= self.config.max_data_bytes:
+            try:
+                chunk = self.transport.read(self.config.chunk_read, timeout_ms)
+            except PTPTimeoutError:
+                break
+            if not chunk:
+                break
+            dropped += len(chunk)
+        if dropped:
+            log.warning("%s: dropped %d bytes of stale bulk-IN data", self.name, dropped)
+        return dropped
+
+    def abort_unfinished(self) -> None:
+        """Cancel (0x64) a transaction left mid-way (Ctrl-C during a download) and drain its data, so the
+        next transaction starts on a clean pipe. Errors are logged: this runs while closing."""
+        tid = self.unfinished_tid
+        if tid is None:
+            return
+        self.unfinished_tid = None
+        try:
+            self.transport.cancel(tid)
+            self.drain()
+        except DeviceError as exc:
+            log.warning("%s: cancelling the interrupted transaction %d: %s", self.name, tid, exc)
 
     def close_session(self) -> None:
         """CloseSession, unless the config says this body must never get it."""

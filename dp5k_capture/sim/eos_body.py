@@ -11,6 +11,7 @@ OperationNotSupported (libgphoto2 ``PTP_DONT_CLOSE_SESSION``).
 from __future__ import annotations
 
 import logging
+import random
 import struct
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -21,6 +22,7 @@ from ..ptp.codes import (
     CAPTURE_DEST_CARD,
     CAPTURE_DEST_PC,
     ISO_CODES,
+    OFC_ASSOCIATION,
     OFC_DNG,
     EosEvent,
     EosProp,
@@ -35,11 +37,16 @@ from ..ptp.codes import (
     TV_CODES,
 )
 from ..ptp.datasets import DeviceInfo, DevicePropDesc, ObjectInfo, StorageInfo, Writer
+from ..ptp.olc import FOCUS_FAILED, FOCUS_IN_FOCUS, OLC_FOCUS_BIT, OLC_PROPS, pack_olc
 
 log = logging.getLogger(__name__)
 
 STORAGE_ID = 0x00010001
 RAW_FORMAT = (6, 0, 4)  # ImageFormat entry: kind 6 = RAW, size 0 = L, compression 4 = lossless
+CARD_SHOTS = 900  # AvailableShots the simulated card has room for
+CARD_IMAGE_FOLDER = 0x9010_0000  # DCIM/100CANON on the card
+CARD_FOLDERS = {0x9000_0000: ("DCIM", 0), CARD_IMAGE_FOLDER: ("100CANON", 0x9000_0000)}  # handle -> (name, parent)
+OLC_VERSION = 0xB  # OLC field layout of the 5Ds generation (the 5D Mark IV's own version is not recorded)
 DATA_OUT_OPS = frozenset({Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.SET_DEVICE_PROP_VALUE})
 
 
@@ -81,11 +88,18 @@ class BodyFaults:
         busy: op code -> how many times it answers DeviceBusy before it succeeds.
         dual_pixel_raw: False simulates a body whose DPRAW menu setting is off.
         card_full: RemoteRelease answers 7 / the release fails with StoreFull.
+        af_result: what DoAf reports in OLC focus info: ``ok`` (in focus), ``fail`` (AF failed), ``silent`` (nothing).
+        busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``);
+            ``busy_answers`` counts them.
     """
 
     busy: dict[int, int] = field(default_factory=dict)
     dual_pixel_raw: bool = True
     card_full: bool = False
+    af_result: str = "ok"
+    busy_rate: float = 0.0
+    busy_answers: int = 0
+    rng: random.Random = field(default_factory=lambda: random.Random(0))
 
 
 @dataclass
@@ -125,6 +139,7 @@ class SimulatedEOS:
         self.broken = False  # after CloseSession, like the real body
         self.remote_mode = 0
         self.event_mode = 0
+        self.olc_mask = 0  # SetRequestOLCInfoGroup: Av/Tv/ISO and the AF state then come only as OLCInfoChanged
         self.events: list[bytes] = []
         self.objects: dict[int, _Object] = {}
         self._next_handle = 0x9000_0001
@@ -149,8 +164,9 @@ class SimulatedEOS:
             EosProp.DRIVE_MODE: 0,
             EosProp.FOCUS_MODE: 0,  # one-shot AF
             EosProp.CAPTURE_DESTINATION: CAPTURE_DEST_CARD,
-            EosProp.AVAILABLE_SHOTS: 0,
+            EosProp.AVAILABLE_SHOTS: CARD_SHOTS,  # room on the card (capture to card is the power-on setting)
             EosProp.EVF_OUTPUT_DEVICE: 0,
+            EosProp.OLC_INFO_VERSION: OLC_VERSION,
             EosProp.SERIAL_NUMBER: serial,
             EosProp.LENS_NAME: lens_name,
         }
@@ -171,11 +187,15 @@ class SimulatedEOS:
 
     def _queue_prop(self, prop: int) -> None:
         value = self.props[prop]
+        bit = {p: b for b, (p, _) in OLC_PROPS.items()}.get(prop)
+        if bit is not None and self.olc_mask & bit:
+            self.events.append(pack_olc(OLC_VERSION, {prop: int(value)}))
+            return
         self.events.append(ev.pack_prop_value(prop, value))
 
     def _queue_dump(self) -> None:
-        for prop in self.props:  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
-            self._queue_prop(prop)
+        for prop, value in self.props.items():  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
+            self.events.append(ev.pack_prop_value(prop, value))
         for prop, values in self.avail.items():
             self.events.append(ev.pack_avail_list(prop, values))
         self.events.append(ev.pack_image_format_value(EosProp.IMAGE_FORMAT, *self.image_format))
@@ -213,7 +233,7 @@ class SimulatedEOS:
         self.last_object_bytes = data
         self.events.append(ev.pack_camera_status(1))
         if on_card:
-            self.events.append(ev.pack_object_added_ex(handle, STORAGE_ID, OFC_DNG, len(data), 0x9000_0000, name))
+            self.events.append(ev.pack_object_added_ex(handle, STORAGE_ID, OFC_DNG, len(data), CARD_IMAGE_FOLDER, name))
         else:
             self.events.append(ev.pack_request_object_transfer(handle, OFC_DNG, len(data), name))
         self.events.append(ev.pack_camera_status(0))
@@ -236,6 +256,9 @@ class SimulatedEOS:
             return Reply(Resp.OK)
         if not self.session_open:
             return Reply(Resp.SESSION_NOT_OPEN)
+        if self.faults.busy_rate > 0 and self.faults.rng.random() < self.faults.busy_rate:
+            self.faults.busy_answers += 1
+            return Reply(Resp.DEVICE_BUSY)
         remaining = self.faults.busy.get(op, 0)
         if remaining > 0:
             self.faults.busy[op] = remaining - 1
@@ -266,20 +289,34 @@ class SimulatedEOS:
     _op_9102 = _op_1005
 
     def _op_1007(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """GetObjectHandles(storage, format, parent): parent 0xFFFFFFFF = the card's root, 0 = every object."""
         if p[0] not in (STORAGE_ID, 0xFFFFFFFF):
             return Reply(Resp.INVALID_STORAGE_ID)
-        handles = [h for h, o in self.objects.items() if o.on_card]
+        tree = [(h, parent) for h, (_, parent) in CARD_FOLDERS.items()]
+        tree += [(h, CARD_IMAGE_FOLDER) for h, o in self.objects.items() if o.on_card]
+        if p[2] == 0xFFFFFFFF:
+            handles = [h for h, parent in tree if parent == 0]
+        elif p[2] == 0:
+            handles = [h for h, _ in tree]
+        else:
+            handles = [h for h, parent in tree if parent == p[2]]
         return Reply(Resp.OK, data=Writer().array(4, handles).bytes())
 
     def _object(self, handle: int) -> _Object | None:
         return self.objects.get(handle)
 
     def _op_1008(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """GetObjectInfo of a card folder (DCIM, DCIM/100CANON) or of an image (on the card or in SDRAM)."""
+        if p[0] in CARD_FOLDERS:
+            name, parent = CARD_FOLDERS[p[0]]
+            info = ObjectInfo(storage_id=STORAGE_ID, object_format=OFC_ASSOCIATION, parent=parent,
+                              association_type=1, filename=name, capture_date="20261121T200000")
+            return Reply(Resp.OK, data=info.pack())
         obj = self._object(p[0])
         if obj is None:
             return Reply(Resp.INVALID_OBJECT_HANDLE)
-        info = ObjectInfo(storage_id=STORAGE_ID, object_format=OFC_DNG, compressed_size=len(obj.data),
-                          parent=0x9000_0000, filename=obj.name, capture_date="20261121T200000")
+        info = ObjectInfo(storage_id=STORAGE_ID if obj.on_card else 0, object_format=OFC_DNG, compressed_size=len(obj.data),
+                          parent=CARD_IMAGE_FOLDER if obj.on_card else 0, filename=obj.name, capture_date="20261121T200000")
         return Reply(Resp.OK, data=info.pack())
 
     def _op_1009(self, p: tuple[int, ...], data: bytes | None) -> Reply:
@@ -336,8 +373,8 @@ class SimulatedEOS:
             return Reply(Resp.INVALID_DEVICE_PROP_VALUE)
         self.props[prop] = value
         self._queue_prop(prop)
-        if prop == EosProp.CAPTURE_DESTINATION and value == CAPTURE_DEST_CARD:
-            self.props[EosProp.AVAILABLE_SHOTS] = 900
+        if prop == EosProp.CAPTURE_DESTINATION:  # the card's room, or 0 until the PC announces its (PCHDDCapacity)
+            self.props[EosProp.AVAILABLE_SHOTS] = CARD_SHOTS if value == CAPTURE_DEST_CARD else 0
             self._queue_prop(EosProp.AVAILABLE_SHOTS)
         return Reply(Resp.OK)
 
@@ -353,8 +390,9 @@ class SimulatedEOS:
         return Reply(Resp.OK)
 
     def _op_9115(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """SetEventMode: switching it on (each new client does) starts with a dump of every property."""
         self.event_mode = p[0]
-        if p[0] and not self._dumped:
+        if p[0]:
             self._queue_dump()
         return Reply(Resp.OK)
 
@@ -387,10 +425,21 @@ class SimulatedEOS:
         return Reply(Resp.OK)
 
     def _op_9154(self, p: tuple[int, ...], data: bytes | None) -> Reply:
-        """DoAf: focus at the AF frame (only in live view, like the real body)."""
+        """DoAf: focus at the AF frame (only in live view, like the real body); the AF state goes to OLC focus info."""
         if not int(self.props[EosProp.EVF_OUTPUT_DEVICE]) & 2:
             return Reply(Resp.GENERAL_ERROR)
-        self._autofocus()
+        report = self.olc_mask & OLC_FOCUS_BIT and self.faults.af_result != "silent"
+        if report:
+            self.events.append(pack_olc(OLC_VERSION, focus=0))
+        if self.faults.af_result == "ok":
+            self._autofocus()
+        if report:
+            self.events.append(pack_olc(OLC_VERSION, focus=FOCUS_IN_FOCUS if self.faults.af_result == "ok" else FOCUS_FAILED))
+        return Reply(Resp.OK)
+
+    def _op_913d(self, p: tuple[int, ...], data: bytes | None) -> Reply:
+        """SetRequestOLCInfoGroup(mask)."""
+        self.olc_mask = p[0]
         return Reply(Resp.OK)
 
     def _op_9128(self, p: tuple[int, ...], data: bytes | None) -> Reply:

@@ -4,7 +4,8 @@
 data and response containers on bulk IN, one USB transfer per container (a read never spans two). It also
 answers the Still Image class requests and string descriptors, and injects USB faults on request:
 disconnect after N bytes of bulk IN, stalls, DeviceBusy storms (via the body), short, garbled and
-malformed containers.
+malformed containers. Like a real body, it keeps what it was sending when its client dies: a new client
+first reads that stale half-sent data phase, until a Cancel (0x64) or Device Reset (0x66) clears it.
 """
 
 from __future__ import annotations
@@ -16,9 +17,10 @@ from dataclasses import dataclass
 
 import usb.core
 
-from ..ptp.codes import CANON_VID, EOS_5D_MARK_IV_PID, ContainerType, Resp
+from ..ptp.codes import CANON_VID, EOS_5D_MARK_IV_PID, ContainerType, Op, Resp
 from ..ptp.container import HEADER, HEADER_LEN
 from .eos_body import DATA_OUT_OPS, SimulatedEOS
+from .fault_spec import BodyFaultPlan
 
 EP_IN, EP_OUT, EP_INT = 0x81, 0x02, 0x83
 
@@ -44,6 +46,10 @@ class UsbFaults:
     drop_next_response: bool = False
 
 
+class SimHang(Exception):
+    """The body stopped sending in the middle of a data phase (``hang@K``): this read is never answered."""
+
+
 class SimUsbPtpDevice:
     """One simulated USB PTP device (VID/PID of a 5D Mark IV by default) around a PTP core."""
 
@@ -60,6 +66,10 @@ class SimUsbPtpDevice:
         self.gone = False
         self.halted = False
         self.in_bytes = 0
+        self.resets = 0  # Still Image Device Reset requests received
+        self.plan = BodyFaultPlan()
+        self.downloads = 0  # raw files started (GetObject, or GetPartialObject at offset 0)
+        self.hang_after_in_bytes: int | None = None
 
     # ------------------------------------------------------------------ faults
     def _usb_error(self, code: int, text: str) -> usb.core.USBError:
@@ -113,11 +123,24 @@ class SimUsbPtpDevice:
     def _run(self, op: int, tid: int, params: tuple[int, ...], data: bytes | None) -> None:
         reply = self.core.handle(op, params, data)
         if reply.data is not None and reply.code == Resp.OK:
+            if op == Op.GET_OBJECT or (op == Op.GET_PARTIAL_OBJECT and len(params) > 1 and params[1] == 0):
+                self._arm_download_faults(HEADER_LEN + len(reply.data))
             self._in.append(bytearray(HEADER.pack(HEADER_LEN + len(reply.data), ContainerType.DATA, op, tid) + reply.data))
         if self.faults.drop_next_response:
             self.faults.drop_next_response = False
             return
         self._queue_response(reply.code, tid, reply.params)
+
+    def _arm_download_faults(self, container_bytes: int) -> None:
+        """Count a new raw download; arm the :class:`BodyFaultPlan` faults planned for it (halfway through)."""
+        self.downloads += 1
+        halfway = self.in_bytes + sum(len(c) for c in self._in) + container_bytes // 2
+        if self.plan.disconnect_at_download == self.downloads:
+            self.faults.disconnect_after_in_bytes = halfway
+        if self.plan.hang_at_download == self.downloads:
+            self.hang_after_in_bytes = halfway
+        if self.plan.stall_at_download == self.downloads:
+            self.faults.stall_in = 1
 
     def _queue_response(self, code: int, tid: int, params: tuple[int, ...]) -> None:
         body = struct.pack(f"<{len(params)}I", *params)
@@ -128,6 +151,7 @@ class SimUsbPtpDevice:
         if self.faults.stall_in > 0 or self.halted:
             if self.faults.stall_in > 0:
                 self.faults.stall_in -= 1
+                self._in.clear()  # the device halts the pipe and drops the transaction it was sending
             self.halted = True
             raise self._usb_error(errno.EPIPE, "Pipe error")
         if not self._in:
@@ -146,6 +170,12 @@ class SimUsbPtpDevice:
         if size % self.max_packet and len(cur) > size:  # libusb: a full packet into a shorter buffer overflows
             raise self._usb_error(errno.EOVERFLOW, "Overflow")
         n = min(size, len(cur))
+        if self.hang_after_in_bytes is not None:
+            left = self.hang_after_in_bytes - self.in_bytes
+            if left <= 0:
+                self.hang_after_in_bytes = None
+                raise SimHang(f"{self.core.serial}: hanging in download {self.downloads}")
+            n = min(n, left)
         if self.faults.disconnect_after_in_bytes is not None:
             left = self.faults.disconnect_after_in_bytes - self.in_bytes
             if left <= 0:
@@ -180,6 +210,7 @@ class SimUsbPtpDevice:
             self._pending_cmd = None
             return len(data) if isinstance(data, (bytes, bytearray)) else 0
         if req_type == 0x21 and req == 0x66:  # Device Reset
+            self.resets += 1
             self._in.clear()
             self._out.clear()
             self._pending_cmd = None
@@ -191,9 +222,9 @@ class SimUsbPtpDevice:
         raise self._usb_error(errno.EPIPE, "Pipe error")
 
     def clear_halt(self, ep: int) -> None:
+        """CLEAR_FEATURE(ENDPOINT_HALT): the pipe runs again; data the body still holds stays queued."""
         self._check_present()
         self.halted = False
-        self._in.clear()
 
     def unplug(self) -> None:
         self.gone = True

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import tempfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -25,13 +28,16 @@ from numpy.typing import NDArray
 from dp5k_common.rawfile import write_dual_pixel_dng
 
 from ..display import PatternWindow
+from ..rawsession import file_mode
 from ..rig import RigConfig
 from .eos_body import BodyFaults, ExposureSettings, SimulatedEOS
+from .fault_spec import parse_sim_faults
 from .projector import SimulatedEBU42
 from .usb_backend import SimUsbBackend
 from .usb_device import SimUsbPtpDevice
 
 SIM_SERIALS = ("SIM5D4000001", "SIM5D4000002")
+GROUND_TRUTH_TMP_PREFIX = "ground_truth.partial."
 
 
 def dng_bytes(main: NDArray[np.uint16], aux: NDArray[np.uint16] | None, black: int, white: int,
@@ -109,6 +115,20 @@ class FlatOptics:
         meta = {"serial": s.serial, "f_number": s.f_number, "shutter_s": s.shutter_s, "iso": s.iso,
                 "focus_distance_m": s.focus_distance_m, "sequence": s.sequence}
         return dng_bytes(main, aux if s.dual_pixel_raw else None, black, white, (2.0, 1.0, 1.5), meta)
+
+    def write_ground_truth(self, folder: Path) -> list[Path]:
+        """``ground_truth/`` of the flat world: ``camN_depth_mm.png`` (16-bit, mm; both bodies see the same
+        plane) and ``truth.json`` (scene ``flat``, raw size in px)."""
+        from dp5k_common.io import write_json_atomic, write_png16
+
+        folder = Path(folder)
+        depth_mm = np.rint(self.depth_m * 1000.0).astype(np.uint16)
+        written = []
+        for i in range(2):
+            write_png16(folder / f"cam{i}_depth_mm.png", depth_mm)
+            written.append(folder / f"cam{i}_depth_mm.png")
+        write_json_atomic(folder / "truth.json", {"scene": "flat", "raw_size_px": [self.w, self.h]})
+        return [*written, folder / "truth.json"]
 
 
 class StudioOptics:
@@ -291,6 +311,8 @@ class StudioOptics:
                 np.save(tmp, np.asarray(gt["proj_xy"], dtype=np.float32))
             written.append(npy)
             rec = self.focus_m.get(i)
+            if rec is None:  # a resumed session whose shots were all taken before: the bodies did not refocus
+                rec = self.autofocus_m(self.serials[i], self.focus_points_px[i])
             truth["cameras"][f"cam{i}"] = {
                 "serial": self.serials[i], "K": gt["K"].tolist(), "dist": gt["dist"].tolist(), "R": gt["R"].tolist(),
                 "t": gt["t"].tolist(), "width": gt["width"], "height": gt["height"],
@@ -321,7 +343,8 @@ class SimRig:
         bodies: the bodies' PTP cores, by camera id.
         usb_devices: their USB framings (fault injection), by camera id.
         projector: the simulated EB-U42.
-        window: the headless pattern window (its framebuffer is the projector's HDMI input).
+        window: the headless pattern window (its framebuffer is the projector's HDMI input); None when the
+            window lives in the capture client's process (sim-rig server).
         optics: the world (also the ChArUco board positioner).
     """
 
@@ -330,20 +353,58 @@ class SimRig:
     bodies: dict[str, SimulatedEOS]
     usb_devices: dict[str, SimUsbPtpDevice]
     projector: SimulatedEBU42
-    window: PatternWindow
+    window: PatternWindow | None
     optics: Any
 
     def close(self) -> None:
         self.projector.stop()
 
 
-def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[SimulatedEBU42, PatternWindow], Any] | None = None,
-                 raw_size_px: tuple[int, int] = (96, 64), warmup_s: float = 0.2, seed: int = 0) -> SimRig:
-    """Build the simulated rig. ``optics_factory(projector, window)`` makes the world (default :class:`FlatOptics`)."""
+def sim_studio_scene(scene: str) -> str | int:
+    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
+    from dp5k_studio import PRESETS
+
+    if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
+        return scene
+    return zlib.crc32(scene.encode()) % 100000
+
+
+def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
+    """``session_dir/ground_truth/`` from the simulated world, as one atomic folder rename (kept if present).
+
+    Written into a hidden temporary folder beside it and renamed, so an interruption leaves either no
+    ``ground_truth/`` or a whole one; leftovers of an interrupted write are removed on the next call.
+    """
+    final = Path(session_dir) / "ground_truth"
+    for stale in Path(session_dir).glob(f".{GROUND_TRUTH_TMP_PREFIX}*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    if final.is_dir():
+        return final
+    tmp = Path(tempfile.mkdtemp(prefix=f".{GROUND_TRUTH_TMP_PREFIX}", dir=session_dir))
+    try:
+        optics.write_ground_truth(tmp)
+        mode = file_mode()
+        for path in tmp.iterdir():
+            os.chmod(path, mode)
+        os.chmod(tmp, mode | (mode & 0o444) >> 2)  # a folder: x wherever r (0o755 under umask 022)
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[SimulatedEBU42, PatternWindow | None], Any] | None = None,
+                 raw_size_px: tuple[int, int] = (96, 64), warmup_s: float = 0.2, seed: int = 0, faults: str = "",
+                 hdmi: Callable[[], NDArray[np.uint8]] | None = None) -> SimRig:
+    """Build the simulated rig. ``optics_factory(projector, window)`` makes the world (default :class:`FlatOptics`).
+
+    ``faults`` is a ``--sim-faults`` text (:mod:`dp5k_capture.sim.fault_spec`). ``hdmi`` is the projector's
+    HDMI input when the pattern window lives in another process (a sim-rig server); then ``window`` is None.
+    """
     base = base or RigConfig()
     p = base.projector
-    window = PatternWindow(p.width, p.height, display_index=0, settle_s=0.0, headless=True)
-    projector = SimulatedEBU42(warmup_s=warmup_s, hdmi=window.frame)
+    window = None if hdmi is not None else PatternWindow(p.width, p.height, display_index=0, settle_s=0.0, headless=True)
+    projector = SimulatedEBU42(warmup_s=warmup_s, hdmi=hdmi if window is None else window.frame)
     port = projector.serve_pty()
     if optics_factory is None:
         optics: Any = FlatOptics(raw_size_px, projector.lit_image, seed)
@@ -365,8 +426,12 @@ def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[Sim
         core = SimulatedEOS(b.serial, optics, faults=BodyFaults())
         bodies[b.id] = core
         devs[b.id] = SimUsbPtpDevice(core, address=10 + i)
+    for cam_id, plan in parse_sim_faults(faults, tuple(devs)).items():
+        devs[cam_id].plan = plan
+        bodies[cam_id].faults.busy_rate = plan.busy_rate
     backend = SimUsbBackend(list(devs.values()))
     return SimRig(rig, backend, bodies, devs, projector, window, optics)
 
 
-__all__ = ["SimRig", "make_sim_rig", "FlatOptics", "StudioOptics", "dng_bytes", "SIM_SERIALS"]
+__all__ = ["SimRig", "make_sim_rig", "FlatOptics", "StudioOptics", "dng_bytes", "SIM_SERIALS", "sim_studio_scene",
+           "write_ground_truth_once"]

@@ -19,7 +19,7 @@ from dp5k_capture.sim.usb_backend import SimUsbBackend  # noqa: E402
 from dp5k_capture.sim.usb_device import SimUsbPtpDevice  # noqa: E402
 from dp5k_capture.sim.world import FlatOptics  # noqa: E402
 
-FAST = CaptureTiming(prop_echo_s=1.0, object_s=2.0, poll_s=0.0, keepalive_s=10.0, af_settle_s=0.0)
+FAST = CaptureTiming(prop_echo_s=1.0, object_s=2.0, poll_s=0.0, keepalive_s=10.0, af_settle_s=0.0, focus_s=1.0)
 FAST_SESSION = SessionConfig(timeout_s=0.5, busy_delay_s=0.001, busy_delay_max_s=0.002)
 
 

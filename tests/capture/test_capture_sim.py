@@ -16,7 +16,7 @@ from dp5k_capture.escvp21 import EpsonProjector, EscVp21Timing, ProjectorError
 from dp5k_capture.ptp.errors import DisconnectedError
 from dp5k_capture.rawsession import CaptureStorageError, RawSessionWriter, verify_session
 from dp5k_capture.rig import RigConfig
-from dp5k_capture.sim.world import SimRig, make_sim_rig
+from dp5k_capture.sim.world import SimRig, make_sim_rig, write_ground_truth_once
 from dp5k_cli import main
 from dp5k_common.errors import DeviceError
 from dp5k_common.rawfile import read_dual_pixel
@@ -24,8 +24,9 @@ from dp5k_common.rawfile import read_dual_pixel
 from .conftest import FAST, FAST_SESSION
 
 
-def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None = None) -> tuple[int, SimRig]:
-    sim = make_sim_rig(RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
+def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None = None,
+         rig: RigConfig | None = None) -> tuple[int, SimRig]:
+    sim = make_sim_rig(rig or RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
     try:
         writer = RawSessionWriter(out, scene, sim.rig, "dng", extra={"simulated": True})
         proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01, default_s=0.5))
@@ -34,7 +35,7 @@ def _run(out: Path, scene: str = "s1", before: Callable[[SimRig], None] | None =
         bodies = open_bodies(sim.rig, backend=sim.backend, config=FAST_SESSION, timing=FAST)
         devices = RigDevices(bodies, proj, sim.window, sim.optics)
         try:
-            return run_scene(sim.rig, devices, writer), sim
+            return run_scene(sim.rig, devices, writer, before_complete=lambda d: write_ground_truth_once(sim.optics, d)), sim
         finally:
             devices.close()
     finally:
@@ -235,3 +236,69 @@ def test_projector_falls_silent_mid_scene_then_resume(tmp_path: Path) -> None:
     assert len(m["files"]) == 18 and all(f["kind"] != "sl" for f in m["files"])
     n, _ = _run(tmp_path)
     assert n == 110 - 18
+
+
+def test_ctrl_c_before_the_ground_truth_leaves_the_session_incomplete(tmp_path: Path) -> None:
+    """Ctrl-C between the last shot and ground_truth/: not complete, verify flags it, the re-run finishes it."""
+    sim = make_sim_rig(RigConfig(), raw_size_px=(48, 32), warmup_s=0.05)
+    try:
+        writer = RawSessionWriter(tmp_path, "s1", sim.rig, "dng", extra={"simulated": True})
+        proj = EpsonProjector(sim.rig.projector.port, timing=EscVp21Timing(poll_s=0.01, default_s=0.5))
+        devices = RigDevices(open_bodies(sim.rig, backend=sim.backend, config=FAST_SESSION, timing=FAST), proj, sim.window, sim.optics)
+
+        def ctrl_c(session_dir: Path) -> None:
+            raise KeyboardInterrupt
+
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                run_scene(sim.rig, devices, writer, before_complete=ctrl_c)
+        finally:
+            devices.close()
+    finally:
+        sim.close()
+    m = json.loads((tmp_path / "s1/manifest.json").read_text())
+    assert len(m["files"]) == 110 and m["complete"] is False and not (tmp_path / "s1/ground_truth").exists()
+    res = CliRunner().invoke(main, ["verify", "--no-dp-check", str(tmp_path / "s1")])
+    assert res.exit_code == 4 and "ground_truth/truth.json: missing" in res.output
+    n, _ = _run(tmp_path)  # the re-run takes no shot, writes the ground truth, then marks the session complete
+    assert n == 0 and json.loads((tmp_path / "s1/manifest.json").read_text())["complete"] is True
+    assert (tmp_path / "s1/ground_truth/cam1_depth_mm.png").is_file()
+    from dp5k_capture.rawsession import file_mode
+
+    mode = file_mode()  # the folder and its files follow the umask (mkdtemp / mkstemp would leave 0700 / 0600)
+    assert (tmp_path / "s1/ground_truth").stat().st_mode & 0o777 == mode | (mode & 0o444) >> 2
+    assert (tmp_path / "s1/ground_truth/truth.json").stat().st_mode & 0o777 == mode
+    assert not list((tmp_path / "s1").glob(".ground_truth*"))
+    res = CliRunner().invoke(main, ["verify", "--no-dp-check", str(tmp_path / "s1")])
+    assert res.exit_code == 0 and "OK: 110 files" in res.output
+
+
+def test_failed_autofocus_stops_the_scene_before_any_shot(tmp_path: Path) -> None:
+    def af_fails(sim: SimRig) -> None:
+        sim.bodies["cam1"].faults.af_result = "fail"
+
+    with pytest.raises(DeviceError, match=r"^cam1 \(.*\): autofocus: autofocus at \(24, 16\) px failed") as err:
+        _run(tmp_path, before=af_fails)
+    assert "SIM5D4000002" in str(err.value)
+    assert json.loads((tmp_path / "s1/manifest.json").read_text())["files"] == []
+    assert not list((tmp_path / "s1").rglob("*.dng"))
+
+
+def test_card_capture_scene_deletes_each_card_file_only_after_it_is_verified(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    card = replace(RigConfig(), capture_destination="card", delete_from_card=True)
+    n, sim = _run(tmp_path, rig=card)
+    assert n == 110 and verify_session(tmp_path / "s1").problems == []
+    assert all(b.objects == {} and 0x100B in b.op_log and 0x9117 not in b.op_log for b in sim.bodies.values())
+
+    held: dict[str, SimRig] = {}
+
+    def dpraw_off(s: SimRig) -> None:
+        s.bodies["cam1"].faults.dual_pixel_raw = False
+        held["sim"] = s
+
+    with pytest.raises(DeviceError, match="did not write a Dual Pixel RAW"):
+        _run(tmp_path / "b", rig=card, before=dpraw_off)
+    bodies = held["sim"].bodies  # the refused raw was not stored, so its card copy was kept; cam0's was deleted
+    assert [o.name for o in bodies["cam1"].objects.values()] == ["IMG_0001.DNG"] and bodies["cam0"].objects == {}

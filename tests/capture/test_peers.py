@@ -46,6 +46,9 @@ def test_libgphoto2_captures_from_the_simulated_body(tmp_path: Path) -> None:
         ap = cfg.get_child_by_name("aperture")
         choices = [ap.get_choice(i) for i in range(ap.count_choices())]
         assert choices[0] == "1.8" and choices[-1] == "22" and "2.8" in choices  # parsed our AvailListChanged
+        target = cam.get_single_config("capturetarget")  # libgphoto2 keeps this setting in ~/.gphoto/settings
+        target.set_value("Internal RAM")
+        cam.set_single_config("capturetarget", target)
         for name, first, last in (("iso", "100", "12800"), ("shutterspeed", "30", "1/8000")):
             w = cfg.get_child_by_name(name)
             vals = [w.get_choice(i) for i in range(w.count_choices())]
@@ -73,6 +76,45 @@ def test_libgphoto2_captures_from_the_simulated_body(tmp_path: Path) -> None:
         assert ops[:3] == [0x1002, 0x1001, 0x9114]  # libgphoto2's order: OpenSession, GetDeviceInfo, SetRemoteMode
         for op in (0x9115, 0x9116, 0x9110, 0x911A, 0x9128, 0x9129, 0x101B, 0x9117, 0x9160):
             assert op in ops, hex(op)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_libgphoto2_card_capture_returns_the_file_from_the_simulated_card(tmp_path: Path) -> None:
+    """Capture to the memory card: libgphoto2 finds the new image through ObjectAddedEx and GetObjectInfo (DCIM/100CANON
+    folders included) and downloads it with GetObject, in seconds (it used to poll for 90 s)."""
+    gp = pytest.importorskip("gphoto2")
+    proc = subprocess.Popen([sys.executable, "-m", "dp5k_capture.sim.ptpip", "--state-dir", str(tmp_path)], cwd=REPO)
+    try:
+        for _ in range(200):
+            if (tmp_path / "port").exists() or proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        port = int((tmp_path / "port").read_text())
+        cam = gp.Camera()
+        abilities = gp.CameraAbilitiesList()
+        abilities.load()
+        cam.set_abilities(abilities[abilities.lookup_model("PTP/IP Camera")])
+        ports = gp.PortInfoList()
+        ports.load()
+        cam.set_port_info(ports[ports.lookup_path(f"ptpip:127.0.0.1:{port}:{port}")])
+        cam.init()
+        w = cam.get_single_config("capturetarget")
+        w.set_value("Memory card")
+        cam.set_single_config("capturetarget", w)
+        t0 = time.monotonic()
+        path = cam.capture(gp.GP_CAPTURE_IMAGE)
+        cfile = cam.file_get(path.folder, path.name, gp.GP_FILE_TYPE_NORMAL)  # keep it alive while its data is copied
+        data = bytes(cfile.get_data_and_size())
+        took_s = time.monotonic() - t0
+        w.set_value("Internal RAM")  # back to libgphoto2's default (it persists this setting)
+        cam.set_single_config("capturetarget", w)
+        cam.exit()
+        assert path.folder == "/store_00010001/DCIM/100CANON" and path.name.startswith("IMG_0001.")
+        assert data == (tmp_path / "last_object.bin").read_bytes() and took_s < 10.0
+        ops = [int(x, 16) for x in (tmp_path / "ops.txt").read_text().split()]
+        assert 0x1008 in ops and 0x1009 in ops and 0x9117 not in ops  # GetObjectInfo + GetObject, no PC transfer
     finally:
         proc.kill()
         proc.wait()

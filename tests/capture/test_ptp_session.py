@@ -15,6 +15,7 @@ from dp5k_capture.ptp.errors import (
 )
 from dp5k_capture.ptp.session import PTPSession
 from dp5k_capture.ptp.transport import UsbTransport
+from dp5k_capture.sim.eos_body import CARD_IMAGE_FOLDER as IMAGE_FOLDER
 
 from .conftest import Body
 
@@ -36,14 +37,15 @@ def test_standard_operations(body: Body) -> None:
     # a card capture gives an object to list, describe, get and delete
     body.core.props[0xD11C] = 2
     assert body.core.handle(Op.EOS_REMOTE_RELEASE_ON, (3, 1)).code == Resp.OK
-    handles = s.get_object_handles(0x00010001)
-    assert len(handles) == 1
+    assert len(s.get_object_handles(0x00010001)) == 3  # DCIM, DCIM/100CANON and the image
+    handles = s.get_object_handles(0x00010001, 0, IMAGE_FOLDER)
+    assert len(handles) == 1 and s.get_object_handles(0x00010001, 0, 0xFFFFFFFF) == [0x9000_0000]  # root: DCIM
     oi = s.get_object_info(handles[0])
     data = s.get_object(handles[0])
     assert len(data) == oi.compressed_size and data == body.core.last_object_bytes
     assert s.get_partial_object(handles[0], 10, 20) == data[10:30]
     s.delete_object(handles[0])
-    assert s.get_object_handles(0x00010001) == []
+    assert s.get_object_handles(0x00010001, 0, IMAGE_FOLDER) == []
     # a Response instead of the Data container (error in the data phase) is a typed error
     with pytest.raises(ResponseError, match="INVALID_OBJECT_HANDLE"):
         s.get_object(handles[0])
@@ -89,7 +91,7 @@ def test_disconnect_in_the_middle_of_a_transfer(body: Body) -> None:
     s.open_session()
     body.core.props[0xD11C] = 2
     body.core.handle(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
-    handle = s.get_object_handles()[0]
+    handle = s.get_object_handles(0xFFFFFFFF, 0, IMAGE_FOLDER)[0]
     body.usb.faults.disconnect_after_in_bytes = body.usb.in_bytes + 700  # inside GetObject's data phase
     with pytest.raises(DisconnectedError) as err:
         s.get_object(handle)
@@ -213,5 +215,5 @@ def test_superspeed_packets_never_overflow_the_read_buffer() -> None:
     assert s.get_device_info().model == "Canon EOS 5D Mark IV"
     b.core.props[0xD11C] = 2
     b.core.handle(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
-    h = s.get_object_handles()[0]
+    h = s.get_object_handles(0xFFFFFFFF, 0, IMAGE_FOLDER)[0]
     assert s.get_object(h) == b.core.last_object_bytes

@@ -40,6 +40,23 @@ def test_rig_toml(tmp_path: Path) -> None:
         load_rig(p)
 
 
+def test_rig_toml_timeouts(tmp_path: Path) -> None:
+    from dp5k_capture.canon import CaptureTiming
+
+    p = tmp_path / "rig.toml"
+    assert (RigConfig().timeouts.transaction_s, RigConfig().timeouts.capture_s) == (20.0, 100.0)  # libgphoto2-like
+    p.write_text("[timeouts]\ntransaction_s = 30\nfocus_s = 4.5\nsettings_s = 2\n")
+    t = load_rig(p).timeouts
+    assert (t.transaction_s, t.capture_s, t.settings_s, t.focus_s) == (30, 100.0, 2, 4.5)
+    timing = CaptureTiming.from_timeouts(t)
+    assert (timing.prop_echo_s, timing.object_s, timing.focus_s) == (2, 100.0, 4.5)
+    for bad, why in (("focus_s = -1", "focus_s must be a positive"), ("capture_s = \"long\"", "capture_s must be"),
+                     ("af_s = 3", "unknown key 'af_s'")):
+        p.write_text(f"[timeouts]\n{bad}\n")
+        with pytest.raises(BadInputError, match=why):
+            load_rig(p)
+
+
 def _writer(tmp_path: Path) -> tuple[RawSessionWriter, RigConfig]:
     rig = RigConfig()
     return RawSessionWriter(tmp_path, "s1", rig, "dng"), rig
@@ -121,3 +138,27 @@ def test_verify_finds_tampering_and_gaps(tmp_path: Path) -> None:
         RawSessionWriter(tmp_path, "s1", rig, "dng")
     with pytest.raises(BadInputError, match="scene name"):
         RawSessionWriter(tmp_path, "../evil", rig, "dng")
+
+
+def test_files_follow_the_umask_and_stale_temporaries_go(tmp_path: Path) -> None:
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        w, rig = _writer(tmp_path)
+        shot = plan_scene(rig)[0]
+        w.add("cam0", shot, b"raw bytes", {})
+        for p in (tmp_path / "s1/manifest.json", tmp_path / "s1/cam0/charuco_0.dng"):
+            assert stat.S_IMODE(p.stat().st_mode) == 0o644, p  # not 0600: readable like a camera's files
+        os.umask(0o027)
+        w.add("cam1", shot, b"raw bytes", {})
+        assert stat.S_IMODE((tmp_path / "s1/cam1/charuco_0.dng").stat().st_mode) == 0o640
+    finally:
+        os.umask(old)
+    # what a SIGKILL leaves under temporary names is removed when the scene is opened again
+    (tmp_path / "s1/.manifest.json.abc123.json").write_text("{")
+    (tmp_path / "s1/cam0/.sl_07.dng.xyz.dng").write_bytes(b"half")
+    RawSessionWriter(tmp_path, "s1", rig, "dng")
+    assert sorted(p.name for p in (tmp_path / "s1").rglob(".*")) == []
+    assert (tmp_path / "s1/cam0/charuco_0.dng").read_bytes() == b"raw bytes"

@@ -1,0 +1,170 @@
+"""The capture client's side of a simulated rig served by another process (:mod:`dp5k_capture.sim.server`).
+
+:func:`connect_sim_rig` returns what a ``--sim`` capture needs: the rig (serials, projector port), a pyusb
+backend whose devices forward every USB call to the server's bodies (the production transport, session
+and EOS code run unchanged), the pattern window (a local headless one whose frames go down the HDMI cable,
+a shared-memory framebuffer), the board positioner and the ground-truth writer. A server that goes away
+looks like an unplugged body (ENODEV).
+"""
+
+from __future__ import annotations
+
+import errno
+from dataclasses import dataclass, replace
+from multiprocessing import resource_tracker, shared_memory
+from multiprocessing.connection import Client, Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import usb.core
+from numpy.typing import NDArray
+
+from dp5k_common.errors import DeviceError
+
+from ..display import PatternWindow
+from ..rig import RigConfig
+from .usb_backend import SimUsbBackend
+
+
+class _Link:
+    """One request/reply connection to the server."""
+
+    def __init__(self, conn: Connection, where: str) -> None:
+        self.conn = conn
+        self.where = where
+
+    def call(self, *msg: Any) -> Any:
+        try:
+            self.conn.send(msg)
+            reply = self.conn.recv()
+        except (EOFError, OSError) as exc:
+            raise usb.core.USBError("No such device (the sim-rig server went away)", None, errno.ENODEV) from exc
+        if reply[0] == "ok":
+            return reply[1]
+        if reply[0] == "usb_timeout":
+            raise usb.core.USBTimeoutError(reply[1], None, errno.ETIMEDOUT)
+        if reply[0] == "usb_error":
+            raise usb.core.USBError(reply[1], None, reply[2])
+        raise DeviceError(f"sim-rig server: {reply[1]}", where=self.where)
+
+
+class RemoteUsbDevice:
+    """A body of the server, with the interface :class:`~dp5k_capture.sim.usb_backend.SimUsbBackend` drives."""
+
+    def __init__(self, link: _Link, cam_id: str, vid: int, pid: int, bus: int, address: int, max_packet: int) -> None:
+        self.link, self.cam_id = link, cam_id
+        self.vid, self.pid, self.bus, self.address, self.max_packet = vid, pid, bus, address, max_packet
+
+    def _usb(self, method: str, *args: Any) -> Any:
+        return self.link.call("usb", self.cam_id, method, args)
+
+    def bulk_out(self, data: bytes) -> int:
+        return int(self._usb("bulk_out", bytes(data)))
+
+    def bulk_in(self, size: int) -> bytes:
+        return bytes(self._usb("bulk_in", size))
+
+    def interrupt_in(self, size: int) -> bytes:
+        return bytes(self._usb("interrupt_in", size))
+
+    def control(self, req_type: int, req: int, value: int, index: int, data: bytes | int) -> bytes | int:
+        return self._usb("control", req_type, req, value, index, data)
+
+    def clear_halt(self, ep: int) -> None:
+        self._usb("clear_halt", ep)
+
+    def _check_present(self) -> None:
+        self._usb("_check_present")
+
+
+class HdmiWindow:
+    """The client's headless :class:`PatternWindow`, its every frame copied into the server's HDMI framebuffer."""
+
+    def __init__(self, width: int, height: int, shm_name: str) -> None:
+        self.window = PatternWindow(width, height, display_index=0, settle_s=0.0, headless=True)
+        self.width, self.height = width, height
+        self._shm = shared_memory.SharedMemory(name=shm_name)
+        # Python 3.11 registers an attached segment for unlinking at exit (or when this process is killed):
+        # the server owns it, and the next client must find it
+        resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
+        self._hdmi: NDArray[np.uint8] = np.ndarray((height, width), np.uint8, buffer=self._shm.buf)
+
+    @property
+    def shown(self) -> int | None:
+        return self.window.shown
+
+    def show(self, image: NDArray[np.uint8], tag: int | None = None) -> None:
+        self.window.show(image, tag)
+        self._hdmi[:] = self.window.frame()
+
+    def frame(self) -> NDArray[np.uint8]:
+        return self.window.frame()
+
+    def close(self) -> None:
+        self.window.close()
+        del self._hdmi
+        self._shm.close()
+
+
+class RemoteBoard:
+    """The studio's hands on the server: place the ChArUco board in pose ``view`` or take it away."""
+
+    def __init__(self, link: _Link) -> None:
+        self.link = link
+
+    def place(self, view: int) -> None:
+        self.link.call("board", "place", (view,))
+
+    def clear(self) -> None:
+        self.link.call("board", "clear", ())
+
+
+@dataclass
+class RemoteSimRig:
+    """A connected sim-rig server: what :func:`dp5k_capture.session_run.capture_scene` opens for ``--sim``."""
+
+    rig: RigConfig
+    backend: SimUsbBackend
+    window: HdmiWindow
+    board: RemoteBoard
+    describe: dict[str, Any]
+    link: _Link
+
+    def write_ground_truth_once(self, session_dir: Path) -> Path:
+        return Path(self.link.call("ground_truth", str(Path(session_dir).resolve())))
+
+    def status(self) -> dict[str, Any]:
+        return dict(self.link.call("status"))
+
+    def close(self) -> None:
+        self.link.conn.close()
+
+
+def connect_sim_rig(socket_path: Path, base: RigConfig | None = None, faults: str = "") -> RemoteSimRig:
+    """Connect to the sim-rig server at ``socket_path``; arm ``faults`` (``--sim-faults``) if given.
+
+    The rig keeps ``base``'s exposure plan and ids; bodies (serials, raw sizes, focus points, intrinsics) and
+    the projector (its pty) come from the server.
+
+    Raises:
+        DeviceError: no server listens there.
+    """
+    where = f"sim-rig {socket_path}"
+    try:
+        conn = Client(str(socket_path), family="AF_UNIX")
+    except OSError as exc:
+        raise DeviceError(f"no simulated rig serves there ({exc.strerror or exc}); start one with "
+                          "python -m dp5k_capture.sim.server --socket PATH", where=where) from exc
+    link = _Link(conn, where)
+    hello = link.call("hello")
+    if faults:
+        link.call("faults", faults)
+    srv: RigConfig = hello["rig"]
+    rig = replace(base or RigConfig(), bodies=srv.bodies, projector=srv.projector)
+    devices = [RemoteUsbDevice(link, *d) for d in hello["bodies"]]
+    window = HdmiWindow(rig.projector.width, rig.projector.height, hello["hdmi"])
+    return RemoteSimRig(rig, SimUsbBackend(devices), window, RemoteBoard(link), hello["describe"], link)  # type: ignore[arg-type]
+
+
+__all__ = ["RemoteSimRig", "connect_sim_rig", "RemoteUsbDevice", "HdmiWindow"]
