@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
-from dp5k_common.io import read_json, sha256_file, write_json_atomic
+from dp5k_common.io import new_file_mode, read_json, sha256_file, write_json_atomic
 
 from .paths import check_scene_name
 from .patterns import projection_count
@@ -66,14 +66,6 @@ def plan_scene(rig: RigConfig) -> list[Shot]:
     n = projection_count(rig.projector.width, rig.projector.height)
     shots += [Shot("sl", f"sl_{k:02d}", e.sl_f_number, e.sl_shutter_s, e.iso, k) for k in range(n)]
     return shots
-
-
-def file_mode() -> int:
-    """The mode a new file gets under this process's umask (0o666 & ~umask, e.g. 0o644), as cameras' files do;
-    temporary files are created 0600 and get this mode before their final rename."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
 
 
 def now_iso() -> str:
@@ -151,7 +143,6 @@ class RawSessionWriter:
         self.manifest["updated"] = now_iso()
         try:
             write_json_atomic(self.manifest_path, self.manifest)
-            os.chmod(self.manifest_path, file_mode())
         except OSError as exc:
             raise _storage_error(exc, self.manifest_path) from exc
 
@@ -184,7 +175,7 @@ class RawSessionWriter:
                     check(tmp)
                 if final.exists():
                     raise BadInputError("appeared while writing; never overwritten", where=final)
-                os.chmod(tmp, file_mode())
+                os.chmod(tmp, new_file_mode())
                 os.replace(tmp, final)
             except OSError as exc:
                 raise _storage_error(exc, final) from exc

@@ -25,9 +25,21 @@ from .errors import BadInputError
 cv2.setNumThreads(max(1, os.cpu_count() or 1))
 
 
+def new_file_mode() -> int:
+    """The mode a newly created file gets under this process's umask: ``0o666 & ~umask`` (0o644 under 022).
+
+    ``tempfile.mkstemp`` creates its files 0600; :func:`atomic_path` gives them this mode before the rename,
+    so every file a stage writes is readable as an ordinary file would be.
+    """
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 @contextlib.contextmanager
 def atomic_path(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Path]:
-    """Yield a temporary path beside ``final``; on success rename it to ``final``, on failure delete it.
+    """Yield a temporary path beside ``final``; on success give it the umask's mode and rename it to ``final``,
+    on failure delete it.
 
     Args:
         final: the destination path.
@@ -40,6 +52,7 @@ def atomic_path(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Pat
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, new_file_mode())
         os.replace(tmp_path, final)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -25,10 +25,10 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
+from dp5k_common.io import new_file_mode
 from dp5k_common.rawfile import write_dual_pixel_dng
 
 from ..display import PatternWindow
-from ..rawsession import file_mode
 from ..rig import RigConfig
 from .eos_body import BodyFaults, ExposureSettings, SimulatedEOS
 from .fault_spec import parse_sim_faults
@@ -383,7 +383,7 @@ def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{GROUND_TRUTH_TMP_PREFIX}", dir=session_dir))
     try:
         optics.write_ground_truth(tmp)
-        mode = file_mode()
+        mode = new_file_mode()
         for path in tmp.iterdir():
             os.chmod(path, mode)
         os.chmod(tmp, mode | (mode & 0o444) >> 2)  # a folder: x wherever r (0o755 under umask 022)

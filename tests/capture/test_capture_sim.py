@@ -263,9 +263,9 @@ def test_ctrl_c_before_the_ground_truth_leaves_the_session_incomplete(tmp_path: 
     n, _ = _run(tmp_path)  # the re-run takes no shot, writes the ground truth, then marks the session complete
     assert n == 0 and json.loads((tmp_path / "s1/manifest.json").read_text())["complete"] is True
     assert (tmp_path / "s1/ground_truth/cam1_depth_mm.png").is_file()
-    from dp5k_capture.rawsession import file_mode
+    from dp5k_common.io import new_file_mode
 
-    mode = file_mode()  # the folder and its files follow the umask (mkdtemp / mkstemp would leave 0700 / 0600)
+    mode = new_file_mode()  # the folder and its files follow the umask (mkdtemp / mkstemp would leave 0700 / 0600)
     assert (tmp_path / "s1/ground_truth").stat().st_mode & 0o777 == mode | (mode & 0o444) >> 2
     assert (tmp_path / "s1/ground_truth/truth.json").stat().st_mode & 0o777 == mode
     assert not list((tmp_path / "s1").glob(".ground_truth*"))
