@@ -13,6 +13,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from .grid_outliers import grid_outlier_mask
+
 
 @dataclass(frozen=True)
 class FilterConfig:
@@ -21,6 +23,10 @@ class FilterConfig:
     Attributes:
         close_px: side of the square structuring element of the dilation-erosion (closing), pixels.
         sor_neighbors, sor_std_ratio: Open3D ``remove_statistical_outlier`` (paper [21]; 20, 2.0).
+        sor_method: ``"grid"``: the same statistic with the neighbours chosen on the pixel grid within
+            ``sor_window_px`` x ``sor_window_px`` (``dp5k_process.grid_outliers``: linear cost, ~x faster at
+            paper size); ``"open3d"``: Open3D's KD-tree on the back-projected cloud.
+        sor_window_px: odd window side of the grid method, pixels.
         median_px: side of the valid-only median window (odd), pixels.
         fill_steps: number of steps of Eq. 3 (paper: i = 1..3, i.e. scales 1, 1/2, 1/4; 4 adds 1/8). The
             pipeline adds one coarser step for each of these scales whose projector pixel is smaller than a
@@ -30,6 +36,8 @@ class FilterConfig:
     close_px: int = 3
     sor_neighbors: int = 20
     sor_std_ratio: float = 2.0
+    sor_method: str = "grid"
+    sor_window_px: int = 7
     median_px: int = 5
     fill_steps: int = 3
 
@@ -108,7 +116,12 @@ def filter_depth(depth_m: NDArray[np.float32], rays: NDArray[np.float32], cfg: F
                  ) -> NDArray[np.float32]:
     """The per-scale chain: close small holes, statistical outlier removal in 3D, valid-only median."""
     d = close_holes(depth_m, cfg.close_px)
-    d = statistical_outliers(d, rays, cfg.sor_neighbors, cfg.sor_std_ratio)
+    if cfg.sor_method == "open3d":
+        d = statistical_outliers(d, rays, cfg.sor_neighbors, cfg.sor_std_ratio)
+    elif cfg.sor_method == "grid":
+        d = np.where(grid_outlier_mask(d, rays, cfg.sor_neighbors, cfg.sor_std_ratio, cfg.sor_window_px), np.nan, d)
+    else:
+        raise ValueError(f"unknown outlier filter {cfg.sor_method!r} (grid or open3d)")
     return valid_median(d, cfg.median_px)
 
 
