@@ -88,10 +88,11 @@ def test_statistical_outliers_match_reference_and_remove_planted():
     np.testing.assert_array_equal(~removed.ravel(), keep)
 
 
-def test_valid_median_equals_nanmedian_reference():
+@pytest.mark.parametrize("invalid_fraction", [0.3, 0.02, 0.0])
+def test_valid_median_equals_nanmedian_reference(invalid_fraction):
     rng = np.random.default_rng(4)
     d = rng.uniform(1, 2, (30, 40)).astype(np.float32)
-    d[rng.random((30, 40)) < 0.3] = np.nan
+    d[rng.random((30, 40)) < invalid_fraction] = np.nan  # 0.02 and 0: mostly full windows (cv2.medianBlur path)
     out = valid_median(d, 5)
     pad = np.pad(d, 2, constant_values=np.nan)
     ref = np.full_like(d, np.nan)
@@ -149,7 +150,7 @@ def test_valid_median_chunks_equal_whole():
     rng = np.random.default_rng(6)
     d = rng.uniform(1, 2, (70, 33)).astype(np.float32)
     d[rng.random((70, 33)) < 0.4] = np.nan
-    np.testing.assert_array_equal(valid_median(d, 5, rows_per_chunk=16), valid_median(d, 5, rows_per_chunk=1000))
+    np.testing.assert_array_equal(valid_median(d, 5, chunk_px=16), valid_median(d, 5, chunk_px=100000))
 
 
 def test_fill_steps_follow_the_camera_resolution():
