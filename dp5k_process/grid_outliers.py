@@ -8,8 +8,9 @@ nearest neighbours in 3D (itself included, at 0 m), and keeps the points whose m
 pixels within sqrt(5) px, and a pixel beside a depth step still has 27 on its own side). No KD-tree, cost
 linear in the pixels:
 
-* a neighbour that is invalid or outside the image counts at ``(window_px // 2 + 1)`` pixel footprints
-  (``z`` x the ray spacing, metres): the nearest a point outside the window can be on a frontal surface;
+* when fewer than k - 1 neighbours in the window are valid (a speck, a corner), each missing one counts at
+  ``(window_px // 2 + 1)`` pixel footprints (``z`` x the ray spacing, metres): the nearest a point outside the
+  window can be on a frontal surface;
 * the cloud's mean and std come from the pixels of a regular grid of every n-th row and column, n chosen so
   that about ``STATS_SAMPLE_PX`` valid pixels are sampled (all of them on small maps; exact per pixel);
 * a pixel is kept without selecting when an upper bound of its mean already passes: the mean over the
@@ -84,8 +85,8 @@ def bound_sum_m(P: NDArray[np.float32], offsets: NDArray[np.int64]) -> NDArray[n
 def exact_mean_distance_m(P: NDArray[np.float32], ys: NDArray[np.int64], xs: NDArray[np.int64], n_select: int,
                           window_px: int, missing_px: float, ray_step: float) -> NDArray[np.float64]:
     """Mean distance (metres) of the pixels (ys, xs) to their ``n_select`` nearest window neighbours and themselves
-    (the self distance 0 counts: divided by ``n_select + 1``, as Open3D does); missing neighbours count at
-    ``missing_px`` footprints of the pixel."""
+    (the self distance 0 counts: divided by ``n_select + 1``, as Open3D does); where fewer than ``n_select``
+    neighbours are valid, each missing one counts at ``missing_px`` footprints of the pixel."""
     r = window_px // 2
     pad = np.pad(P, ((0, 0), (r, r), (r, r)), constant_values=np.nan)
     Wp = pad.shape[2]
@@ -102,8 +103,10 @@ def exact_mean_distance_m(P: NDArray[np.float32], ys: NDArray[np.int64], xs: NDA
             diff = np.take(flat[c], idx) - np.take(flat[c], centre)[:, None]
             d2 += diff * diff
         d = np.sqrt(d2)
+        d[~np.isfinite(d)] = np.inf
+        d = np.partition(d, n_select - 1, axis=1)[:, :n_select]
         d = np.where(np.isfinite(d), d, (missing_px * ray_step * P[2, y, x])[:, None])
-        out[i:i + EXACT_CHUNK_PX] = np.partition(d, n_select - 1, axis=1)[:, :n_select].sum(1, dtype=np.float64)
+        out[i:i + EXACT_CHUNK_PX] = d.sum(1, dtype=np.float64)
     return out / (n_select + 1)
 
 
