@@ -72,3 +72,21 @@ def test_bound_offsets_are_the_nearest_rings():
     assert len(half) == 10 and ((half ** 2).sum(1) <= 5).all()
     with pytest.raises(ValueError):
         go.grid_outlier_mask(np.ones((9, 9), np.float32), np.zeros((9, 9, 2), np.float32), 20, 2.0, window_px=4)
+
+
+def test_on_a_noisy_plane_the_grid_statistic_is_the_kdtree_one():
+    """Where the 19 nearest 3D neighbours lie in the window (a plane, noise below the pixel footprint), the grid
+    filter computes Open3D's statistic (the documented KD-tree semantics): the same pixels fall above
+    mean + 2 std (about 2 % of them)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(11)
+    H, W = 90, 120
+    xs, ys = np.meshgrid(np.linspace(-0.2, 0.2, W), np.linspace(-0.15, 0.15, H))
+    rays = np.stack([xs, ys], -1).astype(np.float32)
+    depth = (2.0 + 0.003 * rng.standard_normal((H, W))).astype(np.float32)  # footprint 6.7 mm
+    P = np.column_stack([(rays[..., 0] * depth).ravel(), (rays[..., 1] * depth).ravel(), depth.ravel()])
+    avg = cKDTree(P).query(P, k=20)[0].mean(1)
+    ref = (avg >= avg.mean() + 2.0 * avg.std(ddof=1)).reshape(H, W)
+    assert 0.01 < ref.mean() < 0.05
+    np.testing.assert_array_equal(go.grid_outlier_mask(depth, rays), ref)
