@@ -77,7 +77,7 @@ def test_bound_offsets_are_the_nearest_rings():
 def test_on_a_noisy_plane_the_grid_statistic_is_the_kdtree_one():
     """Where the 19 nearest 3D neighbours lie in the window (a plane, noise below the pixel footprint), the grid
     filter computes Open3D's statistic (the documented KD-tree semantics): the same pixels fall above
-    mean + 2 std (about 2 % of them)."""
+    mean + 2 std (about 6 % of them, most on the image border)."""
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(11)
@@ -88,5 +88,5 @@ def test_on_a_noisy_plane_the_grid_statistic_is_the_kdtree_one():
     P = np.column_stack([(rays[..., 0] * depth).ravel(), (rays[..., 1] * depth).ravel(), depth.ravel()])
     avg = cKDTree(P).query(P, k=20)[0].mean(1)
     ref = (avg >= avg.mean() + 2.0 * avg.std(ddof=1)).reshape(H, W)
-    assert 0.01 < ref.mean() < 0.05
+    assert 0.01 < ref.mean() < 0.1  # the image border (fewer neighbours near) and the noisiest pixels
     np.testing.assert_array_equal(go.grid_outlier_mask(depth, rays), ref)
