@@ -14,8 +14,8 @@ linear in the pixels:
 * the cloud's mean and std come from the pixels of a regular grid of every n-th row and column, n chosen so
   that about ``STATS_SAMPLE_PX`` valid pixels are sampled (all of them on small maps; exact per pixel);
 * a pixel is kept without selecting when an upper bound of its mean already passes: the mean over the
-  symmetric set of nearest grid offsets ``F`` (|F| >= k - 1) bounds the mean of the k - 1 smallest, so
-  ``(k - 1) / |F| * sum_F / k < threshold`` keeps it. The rest (depth edges, holes, flying pixels: a few %)
+  symmetric set of nearest grid offsets ``F`` (|F| >= k - 1; 20 for k = 20) less its largest distance bounds
+  the mean of the k - 1 smallest, so ``(k - 1) (sum_F - max_F) / (|F| - 1) / k < threshold`` keeps it. The rest (depth edges, holes, flying pixels: a few %)
   get the exact selection (``np.partition``).
 
 The result differs from Open3D's only where the true 3D neighbours lie outside the window or on another part of
@@ -66,20 +66,23 @@ def _shifted_pair(P: NDArray[np.float32], dy: int, dx: int) -> tuple[tuple[slice
     return (ys_a, xs_a), (ys_b, xs_b)
 
 
-def bound_sum_m(P: NDArray[np.float32], offsets: NDArray[np.int64]) -> NDArray[np.float32]:
-    """(H, W) sum of the 3D distances (metres) to the neighbours at ``offsets`` and their mirror images; NaN where
-    one of them is invalid or outside the image."""
+def bound_sum_m(P: NDArray[np.float32], offsets: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(H, W) sum and largest of the 3D distances (metres) to the neighbours at ``offsets`` and their mirror
+    images; NaN where one of them is invalid or outside the image."""
     H, W = P.shape[1:]
     ry, rx = int(offsets[:, 0].max()), int(np.abs(offsets[:, 1]).max())
     S = np.full((H, W), np.nan, np.float32)
     S[ry:H - ry, rx:W - rx] = 0.0  # pixels whose every offset lies inside the image
+    M = np.zeros((H, W), np.float32)
     for dy, dx in offsets:
         a, b = _shifted_pair(P, int(dy), int(dx))
         diff = P[(slice(None),) + a] - P[(slice(None),) + b]
         d = np.sqrt(np.einsum("ijk,ijk->jk", diff, diff))
         S[a] += d
         S[b] += d
-    return S
+        np.fmax(M[a], d, out=M[a])
+        np.fmax(M[b], d, out=M[b])
+    return S, M
 
 
 def exact_mean_distance_m(P: NDArray[np.float32], ys: NDArray[np.int64], xs: NDArray[np.int64], n_select: int,
@@ -140,9 +143,10 @@ def grid_outlier_mask(depth_m: NDArray[np.float32], rays: NDArray[np.float32], n
     threshold_m = avg.mean() + std_ratio * avg.std(ddof=1)
 
     bound = bound_offsets(window_px, n_select)
-    S = bound_sum_m(P, bound)
-    with np.errstate(invalid="ignore"):
-        kept_by_bound = valid & (S > 0) & (S * (n_select / (2 * len(bound))) < nb_neighbors * threshold_m)
+    S, M = bound_sum_m(P, bound)
+    with np.errstate(invalid="ignore"):  # the n_select smallest of F without its largest, at most their mean each
+        upper = (S - M) * (n_select / (2 * len(bound) - 1))
+        kept_by_bound = valid & (S > 0) & (upper < nb_neighbors * threshold_m)
     ys, xs = np.nonzero(valid & ~kept_by_bound)
     remove = np.zeros(depth_m.shape, bool)
     if ys.size:

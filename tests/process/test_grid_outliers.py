@@ -63,7 +63,8 @@ def test_the_bound_only_skips_pixels_the_exact_selection_keeps(monkeypatch):
     """Every pixel goes through the exact selection when the bound certifies none: the same mask."""
     depth, _, rays, _, _ = organised_scene(seed=7)
     fast = go.grid_outlier_mask(depth, rays)
-    monkeypatch.setattr(go, "bound_sum_m", lambda P, off: np.full(P.shape[1:], np.nan, np.float32))
+    nan = np.full(depth.shape, np.nan, np.float32)
+    monkeypatch.setattr(go, "bound_sum_m", lambda P, off: (nan, nan))
     np.testing.assert_array_equal(fast, go.grid_outlier_mask(depth, rays))
 
 
