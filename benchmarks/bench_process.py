@@ -13,12 +13,19 @@ structured-light shots, both frames of the DP and sharp shots). Depth error and 
 truth (``ground_truth/`` of the session). Then the outlier filter: camera 0's depth step run with the grid filter
 (the default) and with Open3D's ``remove_statistical_outlier`` (before issue 22) on the same decoded session:
 seconds, the fraction of pixels whose validity differs, and each one's error against the truth.
+
+Part C -- the outlier filter alone at the paper's raw size (3360 x 2240, 7.5 M points; ``--filter-size``) on a
+synthetic organised cloud (a tilted plane with a 0.4 m step, a hole, 0.5 % spikes), Open3D against the grid
+filter in the same run: seconds and the fraction of valid pixels they decide differently. Part B's depth step at
+paper size ran this filter 6 times per scene.
+
 Rendering a paper-scale session (110 raw frames of 7.5 MP) takes tens of minutes on a 2-core machine:
 ``--keep DIR`` keeps the rendered session there and a later run with the same ``--keep`` reuses it, so the
 processing can be timed again without rendering.
 
     .venv/bin/python benchmarks/bench_process.py [--scale medium|paper] [--scene wall] [--keep DIR]
                                                  [--skip-decode] [--skip-e2e] [--skip-filter]
+                                                 [--filter-size 3360x2240] [--skip-filter-size]
 """
 
 from __future__ import annotations
@@ -257,6 +264,41 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None,
         filter_comparison(raw / scene)
 
 
+def part_c(size: tuple[int, int]) -> None:
+    import os
+
+    from dp5k_process.filters import statistical_outliers
+    from dp5k_process.grid_outliers import grid_outlier_mask
+
+    W, H = size
+    rng = np.random.default_rng(0)
+    xs, ys = np.meshgrid(np.linspace(-0.2, 0.2, W, dtype=np.float32), np.linspace(-0.15, 0.15, H, dtype=np.float32))
+    rays = np.stack([xs, ys], -1)
+    depth = (1.5 + 0.3 * xs + 0.0003 * rng.standard_normal((H, W), dtype=np.float32)).astype(np.float32)
+    depth[:, W // 2:] += 0.4
+    spikes = rng.random((H, W)) < 0.005
+    depth[spikes] += rng.uniform(-0.3, 0.3, int(spikes.sum())).astype(np.float32)
+    depth[H // 3:H // 3 + H // 10, W // 4:W // 4 + W // 10] = np.nan
+    valid = np.isfinite(depth)
+    res = {}
+    for name in ("grid", "open3d"):
+        load0 = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        if name == "grid":
+            removed = grid_outlier_mask(depth, rays)
+        else:
+            removed = np.isnan(statistical_outliers(depth, rays, 20, 2.0)) & valid
+        res[name] = (time.perf_counter() - t0, removed, load0)
+    print(f"\n| outlier filter alone, synthetic organised cloud {W}x{H} ({valid.sum() / 1e6:.2f} M points) | seconds | "
+          "load (1 min) | removed | planted spikes removed |")
+    print("|---|---|---|---|---|")
+    for name, label in (("open3d", "Open3D remove_statistical_outlier(20, 2.0)"), ("grid", "grid filter (k = 20, 7 x 7 window)")):
+        t, rm, ld = res[name]
+        print(f"| {label} | {t:.2f} | {ld:.2f} | {100 * rm[valid].mean():.3f} % | {100 * rm[spikes & valid].mean():.1f} % |")
+    print(f"\nthe two differ on {100 * (res['grid'][1] != res['open3d'][1])[valid].mean():.3f} % of the valid pixels; "
+          f"grid filter {res['open3d'][0] / res['grid'][0]:.1f}x faster in this run")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scale", default="medium", help="studio scale for part B (small, medium, paper)")
@@ -266,6 +308,8 @@ def main() -> None:
     ap.add_argument("--skip-e2e", action="store_true")
     ap.add_argument("--skip-decode", action="store_true")
     ap.add_argument("--skip-filter", action="store_true", help="leave out part B's grid vs Open3D filter comparison")
+    ap.add_argument("--filter-size", default="3360x2240", help="part C's synthetic depth map WxH")
+    ap.add_argument("--skip-filter-size", action="store_true", help="leave out part C")
     args = ap.parse_args()
     cv2.setNumThreads(0)
     with tempfile.TemporaryDirectory() as d:
@@ -273,6 +317,9 @@ def main() -> None:
             part_a(Path(d) / "a")
         if not args.skip_e2e:
             part_b(args.scale, Path(d) / "b", args.scene, args.keep, compare=not args.skip_filter)
+        if not args.skip_filter_size:
+            w, h = (int(v) for v in args.filter_size.lower().split("x"))
+            part_c((w, h))
 
 
 if __name__ == "__main__":
