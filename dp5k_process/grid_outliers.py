@@ -15,8 +15,9 @@ linear in the pixels:
   that about ``STATS_SAMPLE_PX`` valid pixels are sampled (all of them on small maps; exact per pixel);
 * a pixel is kept without selecting when an upper bound of its mean already passes: the mean over the
   symmetric set of nearest grid offsets ``F`` (|F| >= k - 1; 20 for k = 20) less its largest distance bounds
-  the mean of the k - 1 smallest, so ``(k - 1) (sum_F - max_F) / (|F| - 1) / k < threshold`` keeps it. The rest (depth edges, holes, flying pixels: a few %)
-  get the exact selection (``np.partition``).
+  the mean of the k - 1 smallest, so ``(k - 1) (sum_F - max_F) / (|F| - 1) / k < threshold`` keeps it. The
+  rest (depth edges, holes, flying pixels and the noisiest pixels: 1-30 % of them, more where the depth noise
+  is larger than the pixel footprint) get the exact selection (``np.partition``).
 
 The result differs from Open3D's only where the true 3D neighbours lie outside the window or on another part of
 the cloud; ``benchmarks/bench_process.py`` and ``tests/process/test_grid_outliers.py`` measure by how much.
