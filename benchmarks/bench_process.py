@@ -25,7 +25,7 @@ processing can be timed again without rendering.
 
     .venv/bin/python benchmarks/bench_process.py [--scale medium|paper] [--scene wall] [--keep DIR]
                                                  [--skip-decode] [--skip-e2e] [--skip-filter]
-                                                 [--filter-size 3360x2240] [--skip-filter-size]
+                                                 [--filter-size 3360x2240] [--skip-filter-size] [--filter-only]
 """
 
 from __future__ import annotations
@@ -153,6 +153,16 @@ def read_floor_s(session_dir: Path) -> tuple[float, int]:
     return time.perf_counter() - t0, len(files)
 
 
+def load_truth_m(session_dir: Path, cam: str) -> np.ndarray:
+    """The studio's true depth (metres, NaN = no surface) at raw resolution: ``ground_truth/depth_<cam>.npy``
+    (``dp5k_testing.sim_session``) or ``ground_truth/<cam>_depth_mm.png`` (``dp5k capture --sim``)."""
+    npy = session_dir / "ground_truth" / f"depth_{cam}.npy"
+    if npy.is_file():
+        return np.load(npy)
+    mm = cv2.imread(str(session_dir / "ground_truth" / f"{cam}_depth_mm.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    return np.where(mm > 0, mm / 1000.0, np.nan)
+
+
 def truth_error(depth_m: np.ndarray, truth_m: np.ndarray) -> tuple[float, float, float]:
     """Median abs. relative error and fraction > 2 % off over the valid pixels, and coverage of the pixels with a
     true depth; ``truth_m`` at raw resolution, halved (2 x 2 mean) when ``depth_m`` is the half-size output."""
@@ -184,7 +194,7 @@ def filter_comparison(session_dir: Path) -> None:
         decs[cam], raw_size, _ = decode_camera(session, cam, GrayCodeConfig.for_linear_raw(*session.projector_size))
     st, _ = calibrate_session(session, cfg, raw_size)
     st, _, _ = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene)
-    truth = np.load(session_dir / "ground_truth" / "depth_cam0.npy")
+    truth = load_truth_m(session_dir, "cam0")
     res = {}
     for method in ("grid", "open3d"):
         mcfg = dataclasses.replace(cfg, filt=dataclasses.replace(FilterConfig(), sor_method=method))
@@ -210,7 +220,6 @@ def filter_comparison(session_dir: Path) -> None:
 def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None, compare: bool = True) -> None:
     import os
     import resource
-    import subprocess
 
     from dp5k_process.package import process_sessions
     from dp5k_process.pipeline import ProcessConfig
@@ -222,8 +231,6 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None,
         t0 = time.perf_counter()
         write_session(raw, scene, scale=scale, f_numbers=(1.8, 2.0, 2.8, 4.0, 5.6), board_on_wall=scene == "wall")
         t_render = time.perf_counter() - t0
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
     out = tmp / "out"
     load_f = os.getloadavg()
     t_floor, n_files = read_floor_s(raw / scene)
@@ -234,7 +241,6 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None,
     load1 = os.getloadavg()
     peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     rep = json.loads((out / "reports" / scene / "report.json").read_text())
-    print(f"{time.strftime('%Y-%m-%d %H:%M')}, commit {commit}, {os.cpu_count()} CPUs\n")
     print(f"| dp5k process, one scene ({scene}, {scale}: raw {rep['raw_size'][0]}x{rep['raw_size'][1]}, output "
           f"{rep['image_size'][0]}x{rep['image_size'][1]}, 2 cameras x 5 f-numbers) | seconds | x read floor | "
           "load (1 min) |")
@@ -253,7 +259,7 @@ def part_b(scale: str, tmp: Path, scene: str = "wall", keep: Path | None = None,
     for cam in ("cam0", "cam1"):
         pid = cams[cam]["pairs"][0]
         mm = cv2.imread(str(out / "pairs" / pid / "depth.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        med, off, cov = truth_error(np.where(mm > 0, mm / 1000.0, np.nan), np.load(raw / scene / "ground_truth" / f"depth_{cam}.npy"))
+        med, off, cov = truth_error(np.where(mm > 0, mm / 1000.0, np.nan), load_truth_m(raw / scene, cam))
         print(f"| {cam} | {100 * cov:.2f} % | {100 * med:.3f} % | {100 * off:.2f} % |")
     print(f"\n({rendered}; depth coverage {cams['cam0']['depth_coverage']:.3f} / {cams['cam1']['depth_coverage']:.3f}, "
           f"reprojection error {rep['calibration']['reprojection_error_px']:.3f} px; peak memory of this process "
@@ -299,6 +305,16 @@ def part_c(size: tuple[int, int]) -> None:
           f"grid filter {res['open3d'][0] / res['grid'][0]:.1f}x faster in this run")
 
 
+def stamp() -> str:
+    """Date, git commit and CPU count, printed above every run's tables (each row carries its own load)."""
+    import os
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    return f"{time.strftime('%Y-%m-%d %H:%M')}, commit {commit}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scale", default="medium", help="studio scale for part B (small, medium, paper)")
@@ -308,14 +324,19 @@ def main() -> None:
     ap.add_argument("--skip-e2e", action="store_true")
     ap.add_argument("--skip-decode", action="store_true")
     ap.add_argument("--skip-filter", action="store_true", help="leave out part B's grid vs Open3D filter comparison")
+    ap.add_argument("--filter-only", action="store_true",
+                    help="part B's filter comparison alone, on the kept session KEEP/raw/SCENE (e.g. from dp5k capture --sim)")
     ap.add_argument("--filter-size", default="3360x2240", help="part C's synthetic depth map WxH")
     ap.add_argument("--skip-filter-size", action="store_true", help="leave out part C")
     args = ap.parse_args()
     cv2.setNumThreads(0)
+    print(stamp() + "\n")
     with tempfile.TemporaryDirectory() as d:
         if not args.skip_decode:
             part_a(Path(d) / "a")
-        if not args.skip_e2e:
+        if args.filter_only:
+            filter_comparison(args.keep / "raw" / args.scene)
+        elif not args.skip_e2e:
             part_b(args.scale, Path(d) / "b", args.scene, args.keep, compare=not args.skip_filter)
         if not args.skip_filter_size:
             w, h = (int(v) for v in args.filter_size.lower().split("x"))
