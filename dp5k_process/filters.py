@@ -24,8 +24,8 @@ class FilterConfig:
         close_px: side of the square structuring element of the dilation-erosion (closing), pixels.
         sor_neighbors, sor_std_ratio: Open3D ``remove_statistical_outlier`` (paper [21]; 20, 2.0).
         sor_method: ``"grid"``: the same statistic with the neighbours chosen on the pixel grid within
-            ``sor_window_px`` x ``sor_window_px`` (``dp5k_process.grid_outliers``: linear cost, ~x faster at
-            paper size); ``"open3d"``: Open3D's KD-tree on the back-projected cloud.
+            ``sor_window_px`` x ``sor_window_px`` (``dp5k_process.grid_outliers``: linear cost; 1.8 s against
+            Open3D's 105 s on 7.5 M points in ``bench_process.py`` part C); ``"open3d"``: Open3D's KD-tree.
         sor_window_px: odd window side of the grid method, pixels.
         median_px: side of the valid-only median window (odd), pixels.
         fill_steps: number of steps of Eq. 3 (paper: i = 1..3, i.e. scales 1, 1/2, 1/4; 4 adds 1/8). The
