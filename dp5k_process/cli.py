@@ -28,7 +28,9 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
 @click.command("process")
 @click.argument("raw", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--workers", "-j", type=int, default=1, show_default=True, help="Scenes processed in parallel.")
+@click.option("--workers", "-j", type=int, default=1, show_default=True,
+              help="Scenes processed in parallel (a process pool). Under torchrun --nproc_per_node N each rank "
+                   "processes every N-th scene, with its own pool.")
 @click.option("--size", "size", default=None, help="Output size WxH (default: half the raw size, 1680x1120 on the 5D IV half-size).")
 @click.option("--focus-window", default="30x20", show_default=True,
               help="Eq. 5 window WxH at 1680 px width (scaled with the output; the released code uses 60x40).")
@@ -47,6 +49,9 @@ def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_
     1 .. 1/8, triangulates and filters depth per DP camera, estimates the focus distance (Eq. 5), writes
     sharp/left/right/depth/CoC pairs and a report per scene. Finished scenes are skipped (checksums verified);
     a failing scene is reported and skipped, and the command exits with code 8 at the end.
+
+    Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW OUT`` the scenes are split over the N ranks
+    (RANK / WORLD_SIZE): each scene is written by one rank, each rank resumes its own share.
     """
     from calib.calibrate import CalibConfig
 
@@ -62,21 +67,27 @@ def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_
         outcomes = process_sessions(raw, out, cfg, workers=workers, seed=seed)
     finally:
         echo_warnings(raw, out)
-    ok = sum(o.status == "ok" for o in outcomes)
+    from dp5k_common.sharding import rank_info
+
+    ok = [o.scene for o in outcomes if o.status == "ok"]
     skipped = sum(o.status == "skipped" for o in outcomes)
-    click.echo(f"processed {ok} scene(s), skipped {skipped} finished one(s); dataset in {out}")
+    info = rank_info()
+    who = f"rank {info.rank} of {info.world_size}: " if info.enabled else ""
+    click.echo(f"{who}processed {len(ok)} scene(s){' (' + ', '.join(ok) + ')' if ok else ''}, skipped {skipped} "
+               f"finished one(s); dataset in {out}")
 
 
 def echo_warnings(raw: Path, out: Path) -> None:
-    """Repeat, at the end and on stderr, the warnings of every finished scene's report (the calibration checks of
+    """Repeat, at the end and on stderr, the warnings of the finished scenes of this rank's share (the calibration checks of
     ``dp5k_process.refine``), so that a collapsed or corrected calibration is not lost among the progress lines."""
     from dp5k_common.errors import DP5KError
     from dp5k_common.io import read_json
+    from dp5k_common.sharding import rank_info, shard
 
     from .package import find_sessions
 
     try:
-        scenes = [p.name for p in find_sessions(raw)]
+        scenes = [p.name for p in shard(find_sessions(raw), rank_info())]
     except DP5KError:
         return
     for scene in scenes:

@@ -9,15 +9,24 @@ Layout written besides the format's ``dataset.json`` and ``pairs/``::
 A scene whose report says ``ok`` and whose pair files still match the recorded SHA-256 is skipped on the next
 run. A failing scene is reported with its reason, nothing of it enters ``pairs/`` and the others continue; the
 command then ends with :class:`PartialFailureError`.
+
+Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW OUT`` (``RANK`` / ``WORLD_SIZE`` in the environment,
+``dp5k_common.sharding``) each rank owns every N-th scene of the sorted list, whatever has been done before, so
+each scene is written by exactly one rank and a restarted rank resumes its own share. Every rank then rewrites
+``dataset.json`` from all the scenes' reports on disk, under a lock (``OUT/.dataset.lock``): the last rank to
+finish writes the complete index. ``--workers`` runs a rank's (or a lone process's) scenes in a process pool.
 """
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import shutil
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +34,7 @@ from dp5k_common.dataset import split_scenes, write_index, write_pair
 from dp5k_common.errors import BadInputError, DP5KError, PartialFailureError
 from dp5k_common.io import read_json, sha256_file, write_json_atomic
 from dp5k_common.progress import progress
+from dp5k_common.sharding import RankInfo, rank_info, shard
 
 from .pipeline import ProcessConfig, process_scene
 from .report import contact_sheet
@@ -78,7 +88,41 @@ def scene_done(out: Path, scene: str) -> tuple[str, ...] | None:
     return tuple(sums)
 
 
-def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig) -> SceneOutcome:
+def reported_pairs(out: Path, scene: str) -> tuple[str, ...] | None:
+    """The pair ids of a scene whose report says ``ok`` (another rank's scene: its owner verified it), else None."""
+    rp = out / "reports" / scene / "report.json"
+    try:
+        rep = read_json(rp) if rp.is_file() else {}
+    except DP5KError:
+        return None
+    return tuple(rep.get("checksums", {})) if rep.get("status") == "ok" else None
+
+
+@contextmanager
+def index_lock(out: Path) -> Iterator[None]:
+    """Exclusive lock on ``OUT/.dataset.lock`` while a rank reads the reports and writes ``dataset.json``."""
+    with open(out / ".dataset.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def write_dataset_index(out: Path, sessions: list[Path], outcomes: list[SceneOutcome], seed: int) -> None:
+    """``dataset.json`` over every finished scene: this process's outcomes and the other ranks' reports."""
+    with index_lock(out):
+        good = {o.scene: o.pairs for o in outcomes if o.status in ("ok", "skipped")}
+        mine = {o.scene for o in outcomes}
+        for sd in sessions:
+            if sd.name not in mine and (pairs := reported_pairs(out, sd.name)) is not None:
+                good[sd.name] = pairs
+        split = split_scenes(sorted(good), seed=seed)
+        splits = {name: sorted(pid for sc in scenes for pid in good[sc]) for name, scenes in split.items()}
+        write_index(out, splits, source="dp5k process", scenes=sorted(good))
+
+
+def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig, rank: RankInfo = RankInfo()) -> SceneOutcome:
     """Process and write one scene (runs in a worker process). Never raises for a dp5k error: it reports."""
     out = Path(out_dir)
     scene = Path(session_dir).name
@@ -103,7 +147,8 @@ def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig) -> SceneOutcom
             rows.append((f"{scene} {cam} f/{first.params.f_number:g}", first.sharp, first.left, first.right,
                          first.depth_mm, first.coc_px))
         contact_sheet(rows, rdir / "contact_sheet.png")
-        rep = dict(res.report, status="ok", checksums=checksums, seconds=time.perf_counter() - t0)
+        rep = dict(res.report, status="ok", checksums=checksums, seconds=time.perf_counter() - t0,
+                   rank={"rank": rank.rank, "world_size": rank.world_size})
         write_json_atomic(rdir / "report.json", rep)
         return SceneOutcome(scene, "ok", pairs=tuple(checksums))
     except DP5KError as exc:
@@ -115,35 +160,41 @@ def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig) -> SceneOutcom
 
 
 def process_sessions(raw_root: str | os.PathLike[str], out_root: str | os.PathLike[str],
-                     cfg: ProcessConfig = ProcessConfig(), workers: int = 1, seed: int = 0) -> list[SceneOutcome]:
-    """Process every session under ``raw_root`` into ``out_root`` and write ``dataset.json``.
+                     cfg: ProcessConfig = ProcessConfig(), workers: int = 1, seed: int = 0,
+                     rank: RankInfo | None = None) -> list[SceneOutcome]:
+    """Process this rank's share of the sessions under ``raw_root`` into ``out_root`` and write ``dataset.json``.
+
+    Args:
+        rank: this process's rank and the rank count; None = from torchrun's environment (alone: 0 of 1).
+
+    Returns:
+        The outcomes of this rank's scenes, sorted by scene.
 
     Raises:
-        PartialFailureError: at the end, when some scenes failed (their reasons are in the message and reports).
+        PartialFailureError: at the end, when some of this rank's scenes failed (reasons in the message and reports).
     """
+    info = rank_info() if rank is None else rank
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
     sessions = find_sessions(Path(raw_root))
     outcomes: list[SceneOutcome] = []
     todo = []
-    for sd in sessions:
+    for sd in shard(sessions, info):  # the owner of a scene depends only on the sorted list and the rank count
         done = scene_done(out, sd.name)
         if done is not None:
             outcomes.append(SceneOutcome(sd.name, "skipped", pairs=done))
         else:
             todo.append(sd)
+    desc = f"scenes (rank {info.rank} of {info.world_size})" if info.enabled else "scenes"
     if workers <= 1 or len(todo) <= 1:
-        for sd in progress(todo, desc="scenes", unit="scene"):
-            outcomes.append(run_scene(str(sd), str(out), cfg))
+        for sd in progress(todo, desc=desc, unit="scene"):
+            outcomes.append(run_scene(str(sd), str(out), cfg, info))
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            futs = [pool.submit(run_scene, str(sd), str(out), cfg) for sd in todo]
-            for f in progress(as_completed(futs), desc="scenes", unit="scene", total=len(futs)):
+            futs = [pool.submit(run_scene, str(sd), str(out), cfg, info) for sd in todo]
+            for f in progress(as_completed(futs), desc=desc, unit="scene", total=len(futs)):
                 outcomes.append(f.result())
-    good = {o.scene: o.pairs for o in outcomes if o.status in ("ok", "skipped")}
-    split = split_scenes(sorted(good), seed=seed)
-    splits = {name: sorted(pid for sc in scenes for pid in good[sc]) for name, scenes in split.items()}
-    write_index(out, splits, source="dp5k process", scenes=sorted(good))
+    write_dataset_index(out, sessions, outcomes, seed)
     failed = [o for o in outcomes if o.status == "failed"]
     for o in failed:
         log.error("scene %s failed: %s", o.scene, o.reason)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -11,7 +12,8 @@ from dp5k_common.errors import BadInputError, StageError
 from dp5k_process.filters import close_holes, recursive_fill, statistical_outliers, valid_median
 from dp5k_process.focus import FocusConfig, focus_distance, huber_skip_mean
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
-from dp5k_process.triangulate import code_view, depth_from_match, match_in_other, normalised_rays
+from dp5k_process.triangulate import (code_view, depth_from_match, match_in_other, midpoint_triangulate,
+                                      normalised_rays)
 from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection
 
 
@@ -88,10 +90,11 @@ def test_statistical_outliers_match_reference_and_remove_planted():
     np.testing.assert_array_equal(~removed.ravel(), keep)
 
 
-def test_valid_median_equals_nanmedian_reference():
+@pytest.mark.parametrize("invalid_fraction", [0.3, 0.02, 0.0])
+def test_valid_median_equals_nanmedian_reference(invalid_fraction):
     rng = np.random.default_rng(4)
     d = rng.uniform(1, 2, (30, 40)).astype(np.float32)
-    d[rng.random((30, 40)) < 0.3] = np.nan
+    d[rng.random((30, 40)) < invalid_fraction] = np.nan  # 0.02 and 0: mostly full windows (cv2.medianBlur path)
     out = valid_median(d, 5)
     pad = np.pad(d, 2, constant_values=np.nan)
     ref = np.full_like(d, np.nan)
@@ -149,7 +152,7 @@ def test_valid_median_chunks_equal_whole():
     rng = np.random.default_rng(6)
     d = rng.uniform(1, 2, (70, 33)).astype(np.float32)
     d[rng.random((70, 33)) < 0.4] = np.nan
-    np.testing.assert_array_equal(valid_median(d, 5, rows_per_chunk=16), valid_median(d, 5, rows_per_chunk=1000))
+    np.testing.assert_array_equal(valid_median(d, 5, chunk_px=16), valid_median(d, 5, chunk_px=100000))
 
 
 def test_fill_steps_follow_the_camera_resolution():
@@ -168,3 +171,21 @@ def test_fill_steps_follow_the_camera_resolution():
         assert camera_px_per_projector_px(v) == pytest.approx(1.0 / per_px, rel=0.05)
         assert fill_steps_for(v, 3, 4) == steps
     assert fill_steps_for(v, 3, 3) == 3
+
+
+def test_midpoint_triangulate_known_point_gap_and_behind():
+    """Rays from the origin and from the other camera (X_other = R X_ref + T) through a known point meet there with
+    zero gap; moving the other ray 2 cm along y leaves a 2 cm gap and the midpoint between; a point behind is NaN."""
+    R = cv2.Rodrigues(np.array([0.02, -0.1, 0.01]))[0]
+    T = np.array([-0.3, 0.01, 0.02])
+    X = np.array([[0.2, -0.1, 2.0], [-0.4, 0.3, 5.0]])
+    Xo = X @ R.T + T
+    pts, gap = midpoint_triangulate(X / X[:, 2:], Xo / Xo[:, 2:], R, T)
+    np.testing.assert_allclose(pts, X, atol=1e-9)
+    np.testing.assert_allclose(gap, 0.0, atol=1e-9)
+    shifted = X + [0.0, 0.02, 0.0]  # the other camera sees a point 2 cm off, along a direction across both rays
+    So = shifted @ R.T + T
+    pts, gap = midpoint_triangulate(X / X[:, 2:], So / So[:, 2:], R, T)
+    assert np.all(gap > 0.005) and np.all(gap <= 0.02 + 1e-9)
+    behind = midpoint_triangulate(-X[:1] / X[:1, 2:], Xo[:1] / Xo[:1, 2:], R, T)[0]
+    assert np.isnan(behind).all()

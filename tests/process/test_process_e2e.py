@@ -4,6 +4,7 @@ dp5k validate-depth (Eq. 4 against the truth, frontal and tilted wall, part of t
 from __future__ import annotations
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -174,3 +175,39 @@ def test_capture_sim_room_scene_coverage(tmp_path):
         assert (pair.valid & both).sum() / both.sum() >= 0.95
         F = truth["cameras"][cam]["focus_distance_true_m"] * 1000
         assert abs(pair.params.focus_distance_mm - F) / F <= 0.005
+
+
+def test_torchrun_ranks_process_each_scene_once_and_resume_their_share(processed, tmp_path):
+    """``torchrun --nproc_per_node 2 -m dp5k_cli process``: three copies of the wall session split 2 + 1 over the
+    ranks, each written once, pixel for pixel what one process writes; a rank resumes only its own share."""
+    import re
+    import subprocess
+    import sys
+
+    out1, _, _, raw = processed
+    raw3, out = tmp_path / "raw", tmp_path / "out"
+    for name in ("a", "b", "c"):
+        shutil.copytree(raw / "wall", raw3 / name)
+    cli = ["-m", "dp5k_cli", "-q", "process", str(raw3), str(out)]
+    res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *cli],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    done = dict(re.findall(r"rank (\d) of 2: processed \d scene\(s\) \(([a-c, ]+)\)", res.stdout))
+    assert done == {"0": "a, c", "1": "b"}, res.stdout
+    one = json.loads((out1 / "reports" / "wall" / "report.json").read_text())["checksums"]
+    index = json.loads((out / "dataset.json").read_text())
+    assert sorted(sum(index["splits"].values(), [])) == sorted(p.replace("wall", s) for s in "abc" for p in one)
+    for scene, rank in (("a", 0), ("b", 1), ("c", 0)):
+        rep = json.loads((out / "reports" / scene / "report.json").read_text())
+        assert rep["rank"] == {"rank": rank, "world_size": 2}
+        for pid, files in one.items():
+            got = rep["checksums"][pid.replace("wall", scene)]
+            assert {n: got[n] for n in files if n != "params.json"} == {n: h for n, h in files.items() if n != "params.json"}
+
+    depth = out / "pairs" / "c_cam0_f1.8" / "depth.png"  # rank 0's scene changes: rank 1 leaves it alone
+    depth.write_bytes(depth.read_bytes()[:-10] + b"0123456789")
+    env = {**os.environ, "WORLD_SIZE": "2"}
+    res = subprocess.run([sys.executable, *cli], capture_output=True, text=True, timeout=600, env={**env, "RANK": "1"})
+    assert res.returncode == 0 and "rank 1 of 2: processed 0 scene(s), skipped 1" in res.stdout, res.stdout + res.stderr
+    res = subprocess.run([sys.executable, *cli], capture_output=True, text=True, timeout=600, env={**env, "RANK": "0"})
+    assert res.returncode == 0 and "rank 0 of 2: processed 1 scene(s) (c), skipped 1" in res.stdout, res.stdout + res.stderr
