@@ -69,3 +69,51 @@ def deblur_evaluate_command(dataset: Path, checkpoint: Path, out_dir: Path, spli
     scores = evaluate_deblur(dataset, checkpoint, out_dir, split=split, device=device, max_pairs=max_pairs)
     click.echo(table_md(scores).rstrip())
     click.echo(f"-> {out_dir / 'metrics.json'}, {out_dir / 'table.md'}, {out_dir / 'figures'}")
+
+
+@click.group("study")
+def study_group() -> None:
+    """Studies across stages: the downstream proof of the simulators (the paper's Tables 3 and 4)."""
+
+
+@study_group.command("downstream")
+@click.argument("rgbd_dir", type=click.Path(path_type=Path))
+@click.argument("measured", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
+              help="Study folder (table3/table4 .md/.json, figure.png, study.json; synth/ and runs/ inside).")
+@click.option("--simulators", default=",".join(("disk", "butterworth", "raytrace", "base")), show_default=True,
+              help="Comma-separated simulators that need no extra input.")
+@click.option("--neural-checkpoint", type=click.Path(path_type=Path), default=None, help="Adds the Neural DP Simulator.")
+@click.option("--diagnose-report", type=click.Path(path_type=Path), default=None,
+              help="Adds diagnosed:REPORT (a dp5k diagnose report.json).")
+@click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
+              help="Deblurrer TOML config (the same budget for every run); see dp5k_deblur/config.py.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Deblurrer config override; repeatable.")
+@click.option("--few-real-pairs", type=click.IntRange(1), default=4, show_default=True,
+              help="Measured train pairs of the transfer setting.")
+@click.option("--finetune-epochs", type=click.IntRange(1), default=10, show_default=True)
+@click.option("--max-coc-px", type=float, default=None, help="Synthesize's sensor adjustment (default: the frames' pitch).")
+@click.option("--encoding", type=click.Choice(["srgb", "linear"]), default="linear", show_default=True,
+              help="How the frames' image.png is encoded.")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+def study_downstream_command(rgbd_dir: Path, measured: Path, out_dir: Path, simulators: str, neural_checkpoint: Path | None,
+                             diagnose_report: Path | None, config_file: Path | None, sets: tuple[str, ...],
+                             few_real_pairs: int, finetune_epochs: int, max_coc_px: float | None, encoding: str,
+                             device: str, seed: int) -> None:
+    """Synthesize DP data from RGBD_DIR with every simulator, train a deblurrer on each, score them on MEASURED's test
+    split (Table 3), and fine-tune each on a few MEASURED train pairs (Table 4)."""
+    from .config import load_deblur_config
+    from .study import StudyConfig, run_downstream
+
+    cfg = StudyConfig(
+        simulators=tuple(s.strip() for s in simulators.split(",") if s.strip()),
+        neural_checkpoint=None if neural_checkpoint is None else str(neural_checkpoint),
+        diagnose_report=None if diagnose_report is None else str(diagnose_report),
+        max_coc_px=max_coc_px, encoding=encoding, train=load_deblur_config(config_file, sets),
+        few_real_pairs=few_real_pairs, finetune_epochs=finetune_epochs, device=device, seed=seed,
+    )
+    run_downstream(rgbd_dir, measured, out_dir, cfg)
+    for key in ("table3", "table4"):
+        click.echo((out_dir / f"{key}.md").read_text().rstrip() + "\n")
+    click.echo(f"-> {out_dir / 'figure.png'}, {out_dir / 'study.json'}")

@@ -23,6 +23,10 @@ from torch import Tensor, nn
 DP_CHANNELS = 6
 """Left view RGB then right view RGB."""
 SHARP_CHANNELS = 3
+HEAD_INIT_SCALE = 0.1
+"""With ``input_skip``, the output layer's default initial weights are scaled by this: the correction starts small
+(the prediction near L + R) but not zero, so from the first step the gradient reaches every layer (a zero head would
+pass none back, and the U-Net would learn only its last layer for the first hundred steps)."""
 
 
 @dataclass(frozen=True)
@@ -52,9 +56,10 @@ class DPDeblurNet(nn.Module):
         self.up_conv = nn.ModuleList([nn.Conv2d(widths[i + 1], widths[i], 3, padding=1) for i in range(self.cfg.levels)])
         self.up = nn.ModuleList([_block(2 * widths[i], widths[i]) for i in range(self.cfg.levels)])
         self.head = nn.Conv2d(widths[0], SHARP_CHANNELS, 1)
-        if self.cfg.input_skip:  # start as the identity on the blurred input
-            nn.init.zeros_(self.head.weight)
-            nn.init.zeros_(self.head.bias)
+        if self.cfg.input_skip:  # start near the identity on the blurred input, with gradients reaching every layer
+            with torch.no_grad():
+                self.head.weight.mul_(HEAD_INIT_SCALE)
+                self.head.bias.zero_()
 
     def forward(self, left: Tensor, right: Tensor) -> Tensor:
         """(B, 3, H, W) left and right views -> (B, 3, H, W) predicted sharp image."""

@@ -25,7 +25,7 @@ from neural_dp.batch import DPBatch
 from neural_dp.checkpoint import load_checkpoint
 from neural_dp.data import CropSpec, DPPairDataset, collate_dp
 from neural_dp.epochs import EpochLoop, TrainResult, run_epochs
-from neural_dp.losses import masked_charbonnier, masked_gradient_charbonnier
+from neural_dp.losses import CHARBONNIER_EPS, masked_charbonnier, masked_gradient_charbonnier
 from neural_dp.metrics import masked_mae, masked_psnr, masked_ssim
 
 from .config import DeblurTrainConfig
@@ -40,11 +40,12 @@ def target_mask(valid: Tensor) -> Tensor:
     return torch.where(has_depth, v, torch.ones_like(v))
 
 
-def deblur_loss(pred: Tensor, sharp: Tensor, mask: Tensor, grad_weight: float = 0.0) -> Tensor:
-    """Masked Charbonnier of the prediction against ``sharp`` (plus ``grad_weight`` x the gradient term). Scalar."""
-    loss = masked_charbonnier(pred, sharp, mask)
+def deblur_loss(pred: Tensor, sharp: Tensor, mask: Tensor, grad_weight: float = 0.0, eps: float = CHARBONNIER_EPS) -> Tensor:
+    """Masked Charbonnier (``eps`` in linear intensity) of the prediction against ``sharp`` (plus ``grad_weight`` x
+    the gradient term). Scalar."""
+    loss = masked_charbonnier(pred, sharp, mask, eps)
     if grad_weight:
-        loss = loss + grad_weight * masked_gradient_charbonnier(pred, sharp, mask)
+        loss = loss + grad_weight * masked_gradient_charbonnier(pred, sharp, mask, eps)
     return loss
 
 
@@ -56,8 +57,8 @@ def views(batch: DPBatch, where: str) -> tuple[Tensor, Tensor]:
 
 
 def deblur_step(net: torch.nn.Module, module: torch.nn.Module, batch: DPBatch, opt: torch.optim.Optimizer,
-                sched: torch.optim.lr_scheduler.LRScheduler, *, grad_weight: float, grad_clip: float, amp: bool = False,
-                step: int = 0) -> Tensor:
+                sched: torch.optim.lr_scheduler.LRScheduler, *, grad_weight: float, grad_clip: float, eps: float = CHARBONNIER_EPS,
+                amp: bool = False, step: int = 0) -> Tensor:
     """One optimiser step: forward, masked Charbonnier loss, backward, gradient clipping, Adam, schedule.
 
     Raises:
@@ -66,7 +67,7 @@ def deblur_step(net: torch.nn.Module, module: torch.nn.Module, batch: DPBatch, o
     left, right = views(batch, "deblur train")
     with torch.autocast(device_type=batch.sharp.device.type, dtype=torch.bfloat16, enabled=amp):
         pred = net(left, right)
-    loss = deblur_loss(pred.float(), batch.sharp, target_mask(batch.valid), grad_weight)
+    loss = deblur_loss(pred.float(), batch.sharp, target_mask(batch.valid), grad_weight, eps)
     if not torch.isfinite(loss):
         raise StageError(f"loss is {float(loss)} at step {step} (lower the learning rate?)", where="deblur train")
     opt.zero_grad(set_to_none=True)
@@ -174,7 +175,7 @@ def _train(root: Path, out: Path, cfg: DeblurTrainConfig, info: D.DistInfo, resu
 
     def step(batch: DPBatch, k: int) -> Tensor:
         return deblur_step(wrapped, net, batch, opt, sched, grad_weight=cfg.optim.grad_weight, grad_clip=cfg.optim.grad_clip,
-                           amp=use_amp, step=k)
+                           eps=cfg.charbonnier_eps, amp=use_amp, step=k)
 
     def start_from_checkpoint() -> None:
         if init_from is not None:

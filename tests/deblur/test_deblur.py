@@ -16,8 +16,9 @@ from dp5k_deblur.train import target_mask
 from dp5k_studio import make_dataset
 
 TRAIN_ARGS = ["--crop", "48", "--batch-size", "8", "--lr", "2e-3", "--epochs", "30", "--device", "cpu",
-              "--set", "data.samples_per_epoch=80", "--set", "model.base_channels=12"]
-"""30 epochs x 10 steps = 300 Adam steps on 48 px crops."""
+              "--set", "data.samples_per_epoch=80", "--set", "model.base_channels=12", "--set", "charbonnier_eps=0.1"]
+"""30 epochs x 10 steps = 300 Adam steps on 48 px crops; a Charbonnier epsilon that is quadratic below about 0.1 (at the
+paper's 1e-3, nearly L1, 300 steps barely move off the blurred input: docs/deblur.md)."""
 
 
 def studio_pairs(root: Path) -> Path:
@@ -27,12 +28,12 @@ def studio_pairs(root: Path) -> Path:
     return root
 
 
-def test_unet_takes_any_size_and_starts_as_the_blurred_input() -> None:
+def test_unet_takes_any_size_and_starts_near_the_blurred_input() -> None:
     net = DPDeblurNet(DeblurNetConfig(base_channels=4, levels=3))
     left, right = torch.rand(2, 3, 37, 53), torch.rand(2, 3, 37, 53)
     out = net(left, right)
     assert out.shape == (2, 3, 37, 53)
-    assert torch.allclose(out, left + right)  # zero-initialised head: the correction starts at 0
+    assert (out - (left + right)).abs().mean() < 0.02  # a small initial head: the correction starts near 0
     plain = DPDeblurNet(DeblurNetConfig(base_channels=4, levels=2, input_skip=False))
     assert not torch.allclose(plain(left, right), left + right)
 
@@ -58,7 +59,7 @@ def test_trained_deblurrer_beats_the_blurred_input_on_held_out_pairs(tmp_path: P
     assert res.exit_code == 0 and "30 epoch(s), 300 steps" in res.output, res.output
 
     out = tmp_path / "eval"
-    res = runner.invoke(main, ["-q", "deblur", "evaluate", str(data), "--checkpoint", str(run / "best.pt"), "--out", str(out)])
+    res = runner.invoke(main, ["-q", "deblur", "evaluate", str(data), "--checkpoint", str(run / "last.pt"), "--out", str(out)])
     assert res.exit_code == 0, res.output
     metrics = json.loads((out / "metrics.json").read_text())
     test_ids = json.loads((data / "dataset.json").read_text())["splits"]["test"]
