@@ -40,8 +40,8 @@ class DeblurTrainConfig:
     device: str = "auto"
     charbonnier_eps: float = CHARBONNIER_EPS
     """Charbonnier epsilon, linear intensity (the paper's 1e-3: nearly L1). Below it the loss is quadratic: short runs
-    learn much faster with a larger one (300 steps on small studio pairs: +0.03 dB over L + R at 1e-3, +0.45 dB at
-    0.1; docs/deblur.md)."""
+    learn much faster with a larger one (200 steps on small studio pairs: +0.03 dB over L + R at 1e-3, +0.57 dB
+    with MSE; docs/deblur.md)."""
     data: DataConfig = field(default_factory=lambda: DEBLUR_DATA)
     model: DeblurNetConfig = field(default_factory=DeblurNetConfig)
     optim: OptimConfig = field(default_factory=lambda: DEBLUR_OPTIM)
