@@ -36,6 +36,8 @@ from .evaluate import METRICS, DeblurScores, score
 from .train import load_deblurrer, train_deblur
 
 logger = logging.getLogger(__name__)
+FIGURE_MARGIN_DB = 0.3
+"""Space above and below the figure's PSNR range, dB."""
 
 PEER_SIMULATORS: tuple[str, ...] = ("disk", "butterworth", "raytrace", "base")
 """Run without any extra input; ``neural`` needs a checkpoint and ``diagnosed`` a diagnose report."""
@@ -126,8 +128,8 @@ def _figure(path: Path, t3: list[dict[str, Any]], t4: list[dict[str, Any]]) -> N
         ax.axhline(r["psnr"], color=style[0], linestyle=style[1:], label=r["setting"])
     ax.set_xticks(list(xs), [r["simulator"] for r in sims])
     ax.set_ylabel("test PSNR vs sharp (dB)")
-    lo = min(min(r["psnr"] for r in t3 + t4), t3[0]["psnr"]) - 0.5
-    ax.set_ylim(bottom=lo)
+    values = [r["psnr"] for r in t3 + t4]
+    ax.set_ylim(min(values) - FIGURE_MARGIN_DB, max(values) + FIGURE_MARGIN_DB)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
