@@ -83,13 +83,17 @@ def few_pairs_dataset(real: Path, out: Path, count: int) -> Path:
     """A dataset of ``real``'s first ``count`` train pairs and its val pairs (copied), no test pairs.
 
     Raises:
-        BadInputError: ``real`` has fewer than ``count`` train pairs.
+        BadInputError: ``real`` has fewer than ``count`` train pairs, or ``out`` holds other pairs (a resumed study
+            with another ``count``).
     """
     reader = DatasetReader(real)
     train, val = reader.ids("train")[:count], reader.ids("val")
     if len(train) < count:
         raise BadInputError(f"the transfer setting needs {count} train pairs, the dataset has {len(train)}", where=real)
-    if not (out / "dataset.json").is_file():
+    if (out / "dataset.json").is_file():
+        if DatasetReader(out).ids("train") != train:
+            raise BadInputError(f"holds another set of few measured pairs than the first {count}; use another --out", where=out)
+    else:
         for pid in train + val:
             dst = out / "pairs" / pid
             if not dst.is_dir():

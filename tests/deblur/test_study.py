@@ -9,8 +9,11 @@ import pytest
 from click.testing import CliRunner
 
 from dp5k_cli import main
+from dp5k_common.errors import BadInputError
+from dp5k_deblur.study import few_pairs_dataset
 from dp5k_demo.rgbd import write_rgbd_frames
 from dp5k_studio import make_dataset
+from dp5k_testing.tiny_dataset import make_tiny_dataset
 
 TINY = ["--set", "data.crop_px=32", "--set", "data.samples_per_epoch=16", "--set", "optim.epochs=2",
         "--set", "model.base_channels=4", "--set", "model.levels=2", "--few-real-pairs", "2", "--finetune-epochs", "1"]
@@ -43,3 +46,16 @@ def test_study_writes_tables_3_and_4(tmp_path: Path) -> None:
     assert study["config"]["few_real_pairs"] == 2 and set(study["timings_s"]) == {"real", "disk", "base"}
     synth = [json.loads((out / "synth" / s / "dataset.json").read_text()) for s in ("disk", "base")]
     assert synth[0]["splits"] == synth[1]["splits"]  # the same frames
+
+
+def test_few_pairs_dataset_copies_the_first_train_pairs_and_refuses_another_count(tmp_path: Path) -> None:
+    splits = make_tiny_dataset(tmp_path / "real", scenes=6)
+    few = few_pairs_dataset(tmp_path / "real", tmp_path / "few", 1)
+    index = json.loads((few / "dataset.json").read_text())["splits"]
+    assert index == {"train": splits["train"][:1], "val": splits["val"], "test": []}
+    assert (few / "pairs" / splits["train"][0] / "params.json").is_file()
+    assert few_pairs_dataset(tmp_path / "real", tmp_path / "few", 1) == few  # a resumed study reuses it
+    with pytest.raises(BadInputError, match="another set of few measured pairs"):
+        few_pairs_dataset(tmp_path / "real", tmp_path / "few", 2)
+    with pytest.raises(BadInputError, match="needs 5 train pairs"):
+        few_pairs_dataset(tmp_path / "real", tmp_path / "other", 5)
