@@ -13,7 +13,7 @@ Steps:
 
 Usage::
 
-    python benchmarks/study_downstream.py OUT [--frames 12] [--measured 12] [--size 128x96] [--steps 300]
+    python benchmarks/study_downstream.py OUT [--frames 12] [--measured 24] [--size 128x96] [--steps 300]
 
 It prints the date, load average and commit beside the tables and the wall time. Everything goes under OUT.
 """
@@ -51,7 +51,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path)
     ap.add_argument("--frames", type=int, default=12, help="RGBD frames (studio scenes) to synthesize from")
-    ap.add_argument("--measured", type=int, default=12, help="measured studio scenes (train / val / test)")
+    ap.add_argument("--measured", type=int, default=24, help="measured studio scenes (train / val / test)")
     ap.add_argument("--size", default="128x96", help="W x H of frames and measured pairs, px")
     ap.add_argument("--steps", type=int, default=300, help="Adam steps of every deblurrer (pre-training budget)")
     ap.add_argument("--finetune-steps", type=int, default=100, help="Adam steps of the transfer setting")
