@@ -34,8 +34,10 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "train": ("neural_dp.cli", "train_command", "Train the Neural DP Simulator on a dataset."),
     "evaluate": ("neural_dp.cli", "evaluate_command", "Compare every DP simulator: masked MAE / PSNR / SSIM (Table 2)."),
     "synthesize": ("neural_dp.cli", "synthesize_command", "Synthesize DP pairs from RGBD frames with any simulator."),
+    "deblur": ("dp5k_deblur.cli", "deblur_group", "DP defocus deblurring: a U-Net from the DP views to the sharp image."),
     "diagnose": ("dp5k_diagnose.cli", "diagnose_command", "Name what a DP simulator gets wrong, extend it, measure the gain."),
     "import": ("dp5k_import.cli", "import_command", "Import DP data (DP5K release, Sdirt, DPDD, your own) into format v1."),
+    "study": ("dp5k_deblur.cli", "study_group", "Downstream proof: a deblurrer trained on each simulator (Tables 3, 4)."),
     "demo": ("dp5k_demo.cli", "demo_command", "Run the whole pipeline on the virtual studio; write a report."),
 }
 

@@ -14,6 +14,7 @@ from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.errors import BadInputError
 from neural_dp.simulators.base import BaseModel
+from neural_dp.simulators.base.spec import model_to_spec
 
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
 from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, masked_mse, name_cause, test_effects
@@ -138,6 +139,7 @@ class Diagnosis:
             "gain": self.gain,
             "base_params": dict(self.base.params),
             "extended_model": self.extended.describe(),
+            "extended_model_spec": model_to_spec(self.extended),
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
             "discrimination": self.discrimination.to_json() if self.discrimination else None,

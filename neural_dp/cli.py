@@ -91,7 +91,7 @@ def evaluate_command(dataset: Path, split: str, out_dir: Path | None, checkpoint
 @click.command("synthesize")
 @click.argument("in_dir", type=click.Path(path_type=Path))
 @click.argument("out_dir", type=click.Path(path_type=Path))
-@click.option("--simulator", default="neural", show_default=True, help="disk, butterworth, raytrace, base or neural.")
+@click.option("--simulator", default="neural", show_default=True, help="disk, butterworth, raytrace, base, neural or diagnosed:REPORT.json (a dp5k diagnose report).")
 @click.option("--checkpoint", type=click.Path(path_type=Path), default=None, help="Needed by --simulator neural.")
 @click.option("--f-number", "f_numbers", type=float, multiple=True,
               help="Fixed f-number; repeat to draw one per frame (default: 1.8, 2, 2.8, 4, 5.6).")

@@ -19,11 +19,9 @@ steps, without epochs or checkpoints, :class:`~neural_dp.config.FinetuneConfig`)
 from __future__ import annotations
 
 import logging
-import math
 import os
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -31,14 +29,13 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 
-from dp5k_common.errors import BadInputError, EmptySplitError, StageError
-from dp5k_common.io import write_json_atomic
+from dp5k_common.errors import EmptySplitError, StageError
 from dp5k_common.progress import progress
 
 from . import distributed as D
 from .batch import DPBatch
-from .checkpoint import load_checkpoint, save_checkpoint
 from .config import FinetuneConfig, TrainConfig
+from .epochs import EpochLoop, TrainResult, run_epochs
 from .data import CropSpec, DPPairDataset, collate_dp
 from .losses import dp_loss
 from .metrics import view_metrics
@@ -46,18 +43,6 @@ from .model import ModelConfig
 from .simulators.neural import NeuralDPSimulator, model_inputs
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class TrainResult:
-    """What a run produced."""
-
-    out_dir: Path
-    best_val_ssim: float
-    best_epoch: int
-    epochs_done: int
-    steps: int
-    history: list[dict[str, float]] = field(default_factory=list)
 
 
 def loss_mask(valid: torch.Tensor, border_px: int) -> torch.Tensor:
@@ -246,93 +231,19 @@ def _train(root: Path, out: Path, cfg: TrainConfig, info: D.DistInfo, resume: bo
                                  seed=cfg.seed, drop_last=False)
     loader = DataLoader(train_ds, batch_size=cfg.data.batch_size, sampler=sampler, num_workers=cfg.data.num_workers,
                         collate_fn=collate_dp)
-    steps_per_epoch = len(loader)
-    total_steps = max(1, cfg.optim.epochs * steps_per_epoch)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps, eta_min=cfg.optim.lr_min)
-
-    start_epoch, step = 0, 0
-    best_ssim, best_epoch = -math.inf, -1
-    history: list[dict[str, float]] = []
-    last_path, best_path = out / "last.pt", out / "best.pt"
-    if resume and last_path.is_file():
-        state = load_checkpoint(last_path, map_location=device)
-        saved_model = state.get("model_config")
-        if isinstance(saved_model, dict):  # keys added to ModelConfig since (at their defaults) do not block a resume
-            saved_model = {**asdict(ModelConfig()), **saved_model}
-        if saved_model != asdict(cfg.model):
-            raise BadInputError(
-                "the checkpoint's model config differs from this run's; use another --out or the same config",
-                where=last_path,
-            )
-        sim.net.load_state_dict(state["model"])
-        opt.load_state_dict(state["optim"])
-        sched.load_state_dict(state["sched"])
-        sched.T_max = total_steps  # a resumed run may extend the schedule (more epochs)
-        start_epoch, step = int(state["epoch"]), int(state["step"])
-        best_ssim, best_epoch = float(state["best_val_ssim"]), int(state["best_epoch"])
-        history = list(state.get("history", []))
-        if info.is_main:
-            logger.info("resuming from %s at epoch %d (step %d)", last_path, start_epoch, step)
-    else:
-        init_view_gain(sim, train_ds)
-    if info.is_main:
-        write_json_atomic(out / "config.json", cfg.to_dict())
-
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.optim.epochs * len(loader)), eta_min=cfg.optim.lr_min)
     net: torch.nn.Module = sim.net
     if info.enabled:
         net = DistributedDataParallel(sim.net, device_ids=[device.index] if device.type == "cuda" else None)
     border = sim.net.reach_px  # K // 2, more with multi-scale kernels
     use_amp = cfg.optim.amp and device.type == "cuda"
-    bar = progress(total=cfg.optim.epochs * steps_per_epoch, initial=step, desc="train", unit="step") if info.is_main else None
-    try:
-        for epoch in range(start_epoch, cfg.optim.epochs):
-            train_ds.set_epoch(epoch)
-            sampler.set_epoch(epoch)
-            torch.manual_seed(cfg.seed * 1_000_003 + epoch * 7919 + info.rank)
-            sim.train()
-            t0 = time.perf_counter()
-            loss_sum = torch.zeros(2, dtype=torch.float64, device=device)
-            samples = 0
-            for batch in loader:
-                batch = batch.to(device)
-                loss = train_step(net, sim.net, batch, opt, sched, coc_scale_px=cfg.model.coc_scale_px, border_px=border,
-                                  grad_weight=cfg.optim.grad_weight, grad_clip=cfg.optim.grad_clip, amp=use_amp, step=step)
-                step += 1
-                samples += batch.sharp.shape[0]
-                loss_sum += torch.tensor([float(loss.detach()) * batch.sharp.shape[0], batch.sharp.shape[0]],
-                                         dtype=torch.float64, device=device)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(epoch=epoch + 1, loss=f"{float(loss.detach()):.4f}", best_ssim=f"{max(best_ssim, 0):.4f}")
-            loss_sum = D.all_reduce_sum(loss_sum, info)
-            elapsed = time.perf_counter() - t0
-            val = validate(sim, val_ds, info, cfg.data.val_pairs)
-            record = {
-                "epoch": epoch + 1, "step": step, "loss": float(loss_sum[0] / loss_sum[1].clamp_min(1)),
-                "val_ssim": val["ssim"], "val_psnr": val["psnr"], "val_mae": val["mae"],
-                "lr": float(sched.get_last_lr()[0]),
-                "train_samples_per_s": float(samples * info.world_size / max(elapsed, 1e-9)),
-            }
-            history.append(record)
-            improved = val["ssim"] > best_ssim
-            if improved:
-                best_ssim, best_epoch = val["ssim"], epoch + 1
-            state = {
-                "model": sim.net.state_dict(), "model_config": asdict(cfg.model), "config": cfg.to_dict(),
-                "optim": opt.state_dict(), "sched": sched.state_dict(), "epoch": epoch + 1, "step": step,
-                "best_val_ssim": float(best_ssim), "best_epoch": int(best_epoch), "history": history,
-            }
-            if info.is_main:
-                if improved:
-                    save_checkpoint(best_path, state)
-                save_checkpoint(last_path, state)
-                write_json_atomic(out / "history.json", history)
-                logger.info("epoch %d: loss %.5f, val SSIM %.4f, PSNR %.2f dB%s", epoch + 1, record["loss"],
-                            val["ssim"], val["psnr"], " (best)" if improved else "")
-            D.barrier(info)
-            if on_epoch_end is not None:
-                on_epoch_end(epoch + 1, record)
-    finally:
-        if bar is not None:
-            bar.close()
-    return TrainResult(out, float(best_ssim), int(best_epoch), len(history), step, history)
+
+    def step(batch: DPBatch, k: int) -> torch.Tensor:
+        return train_step(net, sim.net, batch, opt, sched, coc_scale_px=cfg.model.coc_scale_px, border_px=border,
+                          grad_weight=cfg.optim.grad_weight, grad_clip=cfg.optim.grad_clip, amp=use_amp, step=k)
+
+    loop = EpochLoop(module=sim.net, opt=opt, sched=sched, train_ds=train_ds, loader=loader, sampler=sampler, step=step,
+                     validate=lambda: validate(sim, val_ds, info, cfg.data.val_pairs), model_config=asdict(cfg.model),
+                     config=cfg.to_dict(), epochs=cfg.optim.epochs, seed=cfg.seed, defaults=asdict(ModelConfig()))
+    return run_epochs(loop, out, info, resume=resume, on_fresh_start=lambda: init_view_gain(sim, train_ds),
+                      on_epoch_end=on_epoch_end)

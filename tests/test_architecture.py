@@ -10,7 +10,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-STAGES = ("dp5k_capture", "dp5k_process", "neural_dp", "dp5k_diagnose", "dp5k_import", "dp5k_studio", "dp5k_demo", "calib")
+STAGES = ("dp5k_capture", "dp5k_process", "neural_dp", "dp5k_diagnose", "dp5k_import", "dp5k_studio", "dp5k_demo", "calib",
+          "dp5k_deblur")
 
 
 def imported_modules(package: str) -> set[str]:
@@ -33,11 +34,12 @@ def offending(package: str, forbidden: tuple[str, ...]) -> list[str]:
 
 
 def test_models_never_import_the_world() -> None:
-    assert not offending("neural_dp", ("dp5k_studio", "dp5k_capture", "dp5k_diagnose", "dp5k_demo"))
+    assert not offending("neural_dp", ("dp5k_studio", "dp5k_capture", "dp5k_diagnose", "dp5k_demo", "dp5k_deblur"))
 
 
 def test_world_never_imports_the_models_or_the_capture_layer() -> None:
-    assert not offending("dp5k_studio", ("neural_dp", "dp5k_diagnose", "dp5k_capture", "dp5k_process", "dp5k_import", "dp5k_demo"))
+    assert not offending("dp5k_studio", ("neural_dp", "dp5k_diagnose", "dp5k_capture", "dp5k_process", "dp5k_import", "dp5k_demo",
+                                         "dp5k_deblur"))
 
 
 def test_simulated_devices_render_through_the_world_only() -> None:
@@ -46,6 +48,12 @@ def test_simulated_devices_render_through_the_world_only() -> None:
 
 def test_importers_are_a_stage_below_diagnose() -> None:
     assert not offending("dp5k_import", ("dp5k_diagnose", "neural_dp", "dp5k_studio", "dp5k_capture", "dp5k_demo"))
+
+
+def test_deblurrer_uses_only_common_and_the_simulators() -> None:
+    """dp5k_deblur trains on datasets and synthesizes with neural_dp's simulators; it never reaches the world, capture,
+    processing, importers, diagnose or the demo (a diagnose report reaches it as a file)."""
+    assert not offending("dp5k_deblur", tuple(s for s in STAGES if s not in ("neural_dp", "dp5k_deblur")))
 
 
 def test_common_imports_no_stage() -> None:

@@ -8,6 +8,7 @@ butterworth Butterworth PSF, layered (Abuolaim 2021)             -
 raytrace   thin-lens ray tracing, aperture points (Pan 2021)     -
 base       the physical base model (``neural_dp.simulators.base``) -
 neural     the Neural DP Simulator (Li et al. 2023)              a checkpoint
+diagnosed  the base model + the effects a diagnose report fitted ``diagnosed:REPORT.json``
 ========== ===================================================== =========================
 
 Every simulator is the project's own code, so an import error is a bug and propagates: it is never taken
@@ -54,13 +55,22 @@ def _neural() -> type[DPSimulator]:
     return NeuralDPSimulator
 
 
+def _diagnosed() -> type[DPSimulator]:
+    from .diagnosed import DiagnosedSimulator
+
+    return DiagnosedSimulator
+
+
 _FACTORIES: dict[str, Callable[[], type[DPSimulator]]] = {
     "disk": _disk,
     "butterworth": _butterworth,
     "raytrace": _raytrace,
     "base": _base,
     "neural": _neural,
+    "diagnosed": _diagnosed,
 }
+DIAGNOSED_PREFIX = "diagnosed:"
+"""``diagnosed:REPORT.json`` names the diagnosed simulator together with its report."""
 PEERS: tuple[str, ...] = ("disk", "butterworth", "raytrace")
 """The handcrafted peers of the paper's Table 2, in its column order."""
 
@@ -76,6 +86,8 @@ def simulator_class(name: str) -> type[DPSimulator]:
     Raises:
         BadInputError: unknown name.
     """
+    if name.startswith(DIAGNOSED_PREFIX):
+        name = "diagnosed"
     if name not in _FACTORIES:
         raise BadInputError(f"unknown simulator {name!r} (known: {', '.join(_FACTORIES)})", where="simulator")
     return _FACTORIES[name]()
@@ -85,9 +97,16 @@ def get_simulator(name: str, checkpoint: str | os.PathLike[str] | None = None) -
     """A ready simulator instance (published defaults; ``neural`` loaded from ``checkpoint``).
 
     Raises:
-        BadInputError: unknown name, ``neural`` without a checkpoint, or an unreadable checkpoint.
+        BadInputError: unknown name, ``neural`` without a checkpoint, or an unreadable checkpoint;
+            ``diagnosed`` without a report, or a report without ``extended_model_spec``.
     """
     cls = simulator_class(name)
+    if cls.name == "diagnosed":
+        report = name[len(DIAGNOSED_PREFIX):] if name.startswith(DIAGNOSED_PREFIX) else ""
+        if not report:
+            raise BadInputError("the diagnosed simulator needs a report: diagnosed:REPORT.json (from 'dp5k diagnose')",
+                                where="simulator")
+        return cls.from_report(report)  # type: ignore[attr-defined]
     if name == "neural":
         if checkpoint is None:
             raise BadInputError("the neural simulator needs a checkpoint (train one with 'dp5k train')", where="simulator")

@@ -1,0 +1,119 @@
+"""``dp5k deblur train|evaluate`` and ``dp5k study downstream``: thin click wrappers over the library."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dp5k_common.errors import BadInputError
+
+
+@click.group("deblur")
+def deblur_group() -> None:
+    """DP defocus deblurring: a DPDNet-like U-Net from the two DP views to the sharp image."""
+
+
+@deblur_group.command("train")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
+              help="Run folder (config.json, last.pt, best.pt, history.json).")
+@click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
+              help="TOML (or JSON) config file; see dp5k_deblur/config.py.")
+@click.option("--epochs", type=int, default=None, help="Override optim.epochs.")
+@click.option("--batch-size", type=int, default=None, help="Override data.batch_size (per process).")
+@click.option("--lr", type=float, default=None, help="Override optim.lr.")
+@click.option("--crop", type=int, default=None, help="Override data.crop_px.")
+@click.option("--device", default=None, help="cpu, cuda, cuda:N or auto (default: auto).")
+@click.option("--seed", type=int, default=None, help="Override seed.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Any config override; repeatable.")
+@click.option("--init-from", type=click.Path(path_type=Path), default=None,
+              help="Start a fresh run from this deblurrer checkpoint's weights (fine-tuning).")
+@click.option("--no-resume", is_flag=True, help="Ignore an existing last.pt (refuses if it exists, to protect it).")
+def deblur_train_command(dataset: Path, out_dir: Path, config_file: Path | None, epochs: int | None, batch_size: int | None,
+                         lr: float | None, crop: int | None, device: str | None, seed: int | None, sets: tuple[str, ...],
+                         init_from: Path | None, no_resume: bool) -> None:
+    """Train the deblurrer on DATASET's train split (any format-v1 dataset; best checkpoint by val SSIM).
+
+    Runs again in the same --out resume from last.pt. Multi-GPU / multi-node:
+    torchrun --nproc_per_node G -m dp5k_cli deblur train DATASET --out DIR
+    """
+    from .config import load_deblur_config
+    from .train import train_deblur
+
+    overrides = list(sets)
+    for key, value in (("optim.epochs", epochs), ("data.batch_size", batch_size), ("optim.lr", lr),
+                       ("data.crop_px", crop), ("device", device), ("seed", seed)):
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    cfg = load_deblur_config(config_file, overrides)
+    if no_resume and (out_dir / "last.pt").exists():
+        raise BadInputError("--no-resume but a previous run's last.pt exists here; choose another --out", where=out_dir)
+    result = train_deblur(dataset, out_dir, cfg, resume=not no_resume, init_from=init_from)
+    click.echo(f"{out_dir}: {result.epochs_done} epoch(s), {result.steps} steps; best val SSIM {result.best_val_ssim:.4f} "
+               f"at epoch {result.best_epoch} -> {out_dir / 'best.pt'}")
+
+
+@deblur_group.command("evaluate")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--checkpoint", type=click.Path(path_type=Path), required=True, help="A dp5k deblur train checkpoint (best.pt).")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
+              help="Output folder (metrics.json, table.md, figures/).")
+@click.option("--split", default="test", show_default=True, help="Split to evaluate.")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--max-pairs", type=int, default=0, help="Evaluate at most this many pairs (0 = all).")
+def deblur_evaluate_command(dataset: Path, checkpoint: Path, out_dir: Path, split: str, device: str, max_pairs: int) -> None:
+    """Masked MAE / PSNR / SSIM of the deblurred image against sharp, beside the blurred input L+R."""
+    from .evaluate import evaluate_deblur, table_md
+
+    scores = evaluate_deblur(dataset, checkpoint, out_dir, split=split, device=device, max_pairs=max_pairs)
+    click.echo(table_md(scores).rstrip())
+    click.echo(f"-> {out_dir / 'metrics.json'}, {out_dir / 'table.md'}, {out_dir / 'figures'}")
+
+
+@click.group("study")
+def study_group() -> None:
+    """Studies across stages: the downstream proof of the simulators (the paper's Tables 3 and 4)."""
+
+
+@study_group.command("downstream")
+@click.argument("rgbd_dir", type=click.Path(path_type=Path))
+@click.argument("measured", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
+              help="Study folder (table3/table4 .md/.json, figure.png, study.json; synth/ and runs/ inside).")
+@click.option("--simulators", default=",".join(("disk", "butterworth", "raytrace", "base")), show_default=True,
+              help="Comma-separated simulators that need no extra input.")
+@click.option("--neural-checkpoint", type=click.Path(path_type=Path), default=None, help="Adds the Neural DP Simulator.")
+@click.option("--diagnose-report", type=click.Path(path_type=Path), default=None,
+              help="Adds diagnosed:REPORT (a dp5k diagnose report.json).")
+@click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
+              help="Deblurrer TOML config (the same budget for every run); see dp5k_deblur/config.py.")
+@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Deblurrer config override; repeatable.")
+@click.option("--few-real-pairs", type=click.IntRange(1), default=4, show_default=True,
+              help="Measured train pairs of the transfer setting.")
+@click.option("--finetune-epochs", type=click.IntRange(1), default=10, show_default=True)
+@click.option("--max-coc-px", type=float, default=None, help="Synthesize's sensor adjustment (default: the frames' pitch).")
+@click.option("--encoding", type=click.Choice(["srgb", "linear"]), default="linear", show_default=True,
+              help="How the frames' image.png is encoded.")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+def study_downstream_command(rgbd_dir: Path, measured: Path, out_dir: Path, simulators: str, neural_checkpoint: Path | None,
+                             diagnose_report: Path | None, config_file: Path | None, sets: tuple[str, ...],
+                             few_real_pairs: int, finetune_epochs: int, max_coc_px: float | None, encoding: str,
+                             device: str, seed: int) -> None:
+    """Synthesize DP data from RGBD_DIR with every simulator, train a deblurrer on each, score them on MEASURED's test
+    split (Table 3), and fine-tune each on a few MEASURED train pairs (Table 4)."""
+    from .config import load_deblur_config
+    from .study import StudyConfig, run_downstream
+
+    cfg = StudyConfig(
+        simulators=tuple(s.strip() for s in simulators.split(",") if s.strip()),
+        neural_checkpoint=None if neural_checkpoint is None else str(neural_checkpoint),
+        diagnose_report=None if diagnose_report is None else str(diagnose_report),
+        max_coc_px=max_coc_px, encoding=encoding, train=load_deblur_config(config_file, sets),
+        few_real_pairs=few_real_pairs, finetune_epochs=finetune_epochs, device=device, seed=seed,
+    )
+    run_downstream(rgbd_dir, measured, out_dir, cfg)
+    for key in ("table3", "table4"):
+        click.echo((out_dir / f"{key}.md").read_text().rstrip() + "\n")
+    click.echo(f"-> {out_dir / 'figure.png'}, {out_dir / 'study.json'}")
