@@ -25,6 +25,7 @@ from neural_dp.simulators.base.components import ChromaticDefocus, PSFProfile
 from neural_dp.simulators.base.render import NODE_SPACING_LADDER, RenderConfig, render_layers
 from neural_dp.simulators.butterworth import ButterworthSimulator, butterworth_psf
 from neural_dp.simulators.disk import TranslatingDiskSimulator, translating_disk_psf
+from neural_dp.simulators import peer_layers
 from neural_dp.simulators.peer_layers import PsfFn, render_layered
 from neural_dp.simulators.raytrace import RayTracingSimulator, aperture_points, render_raytrace
 
@@ -368,9 +369,21 @@ TOL = 1e-4
 
 # ---- peers ------------------------------------------------------------------------------------------------
 
+LAYER_PATHS = {
+    "auto": {},
+    "direct_and_crop_fft": {"CROP_FFT_COST_RATIO": float("inf")},
+    "direct_and_frame_fft": {"CROP_FFT_COST_RATIO": 0.0},
+    "fft_only": {"DIRECT_MAX_PX": 0, "CROP_FFT_COST_RATIO": 0.0},
+}
+"""Settings of peer_layers that force each convolution path (direct, FFT of a layer's box, frame spectrum)."""
+
+
+@pytest.mark.parametrize("path", list(LAYER_PATHS))
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("name", ["disk", "butterworth"])
-def test_layered_peers_equal_reference(name: str, dtype: torch.dtype) -> None:
+def test_layered_peers_equal_reference(name: str, dtype: torch.dtype, path: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    for attr, value in LAYER_PATHS[path].items():
+        monkeypatch.setattr(peer_layers, attr, value)
     b = _scene(2, 40, 56, -19.0, 26.0, dtype)
     sim, psf = ((TranslatingDiskSimulator(), translating_disk_psf) if name == "disk"
                 else (ButterworthSimulator(), butterworth_psf))
