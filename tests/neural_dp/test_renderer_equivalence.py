@@ -369,13 +369,16 @@ TOL = 1e-4
 
 # ---- peers ------------------------------------------------------------------------------------------------
 
+SMALL_TILES = {"TILE_MIN_PX": 12, "TILE_SIDE_PER_KERNEL_PX": 0, "TILES_PER_CHUNK": 3}
 LAYER_PATHS = {
     "auto": {},
-    "direct_and_crop_fft": {"CROP_FFT_COST_RATIO": float("inf")},
-    "direct_and_frame_fft": {"CROP_FFT_COST_RATIO": 0.0},
-    "fft_only": {"DIRECT_MAX_PX": 0, "CROP_FFT_COST_RATIO": 0.0},
+    "direct_and_tiles": {"FRAME_FFT_COST_RATIO": float("inf"), **SMALL_TILES},
+    "direct_and_frame_fft": {"FRAME_FFT_COST_RATIO": 0.0},
+    "fft_tiles_only": {"DIRECT_MAX_PX": 0, "FRAME_FFT_COST_RATIO": float("inf"), **SMALL_TILES},
+    "fft_frame_only": {"DIRECT_MAX_PX": 0, "FRAME_FFT_COST_RATIO": 0.0},
 }
-"""Settings of peer_layers that force each convolution path (direct, FFT of a layer's box, frame spectrum)."""
+"""Settings of peer_layers that force each convolution path (direct on a layer's box, FFT of the tiles
+holding a layer's pixels, several tiles per layer and chunk, spectra accumulated on the frame grid)."""
 
 
 @pytest.mark.parametrize("path", list(LAYER_PATHS))
