@@ -7,7 +7,10 @@ Two ways of blurring live here:
   padded input. It keeps only the padded input and the weights alive for backward, about 3x less memory
   than ``F.unfold`` (``_apply_kernels_unfold`` is kept as the reference the tests compare against).
 * :func:`convolve_same` convolves a whole image with one PSF (true convolution, zero padding), switching
-  to FFT for large kernels; the layered peer simulators use it.
+  to FFT for large kernels.
+* :func:`convolve_full` convolves every channel with each of a few small PSFs (the left and right views
+  of a layer), full output; on the CPU with OpenCV's ``filter2D`` (10-25 x faster than a grouped
+  ``conv2d`` for 3-9 px kernels on this project's CPU); the layered renderers use it for small kernels.
 
 Kernel layout convention: a flattened kernel index ``t = i * K + j`` is row ``i`` (y offset ``i - K//2``)
 and column ``j`` (x offset ``j - K//2``). The weights are a *gather* kernel:
@@ -24,6 +27,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -142,3 +147,47 @@ def convolve_same(x: Tensor, psf: Tensor, *, fft_above: int = 21) -> Tensor:
     K = torch.fft.rfft2(psf.to(x.dtype), s=(Hp, Wp))
     full = torch.fft.irfft2(X * K, s=(Hp, Wp))
     return full[..., r : r + H, r : r + W]
+
+
+def convolve_full(x: Tensor, psfs: Tensor, *, backend: str = "auto") -> Tensor:
+    """Full 2-D convolutions (true convolution, zero outside ``x``) of every channel with each of V PSFs.
+
+    .. math::
+        out_v(y, x) = \\sum_{i,j} psf_v(i, j)\\, x(y - i, x - j), \\qquad 0 \\le y < h + k - 1
+
+    so the centre of a ``psf`` sits at ``(k//2, k//2)``: the input pixel ``(y, x)`` lands at
+    ``(y + k//2, x + k//2)`` for a centred delta.
+
+    Args:
+        x: (B, C, h, w).
+        psfs: (V, k, k), the same PSFs for every channel, or (V, C, k, k), one per channel; k odd.
+        backend: ``"auto"`` (``cv2.filter2D`` per channel for float32/float64 on the CPU, ``conv2d``
+            otherwise), ``"opencv"`` or ``"torch"``.
+
+    Returns:
+        (B, V, C, h + k - 1, w + k - 1).
+    """
+    B, C, h, w = x.shape
+    V, k = psfs.shape[0], psfs.shape[-1]
+    per_channel = psfs.ndim == 4
+    if psfs.shape[-2] != k or k % 2 == 0 or (per_channel and psfs.shape[1] != C):
+        raise BadInputError(f"psfs {tuple(psfs.shape)} do not fit an image of {C} channels with odd square kernels",
+                            where="convolve_full")
+    r = k // 2
+    if backend == "auto":
+        backend = "opencv" if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) else "torch"
+    if backend == "opencv":
+        src = x.detach().contiguous().numpy()
+        kern = psfs.detach().to(x.dtype).flip(-1, -2).contiguous().numpy()  # filter2D correlates
+        out = np.empty((B, V, C, h + 2 * r, w + 2 * r), dtype=src.dtype)
+        for b in range(B):
+            for c in range(C):
+                padded = cv2.copyMakeBorder(src[b, c], r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+                for v in range(V):
+                    kv = kern[v, c] if per_channel else kern[v]
+                    out[b, v, c] = cv2.filter2D(padded, -1, kv, borderType=cv2.BORDER_CONSTANT)
+        return torch.from_numpy(out)
+    weight = psfs.flip(-1, -2).to(x.dtype)  # conv2d correlates
+    weight = weight.transpose(0, 1) if per_channel else weight[None].expand(C, V, k, k)  # (C, V, k, k)
+    out = F.conv2d(F.pad(x, (k - 1,) * 4), weight.reshape(C * V, 1, k, k), groups=C)
+    return out.view(B, C, V, h + k - 1, w + k - 1).transpose(1, 2)

@@ -30,6 +30,8 @@ from numpy.typing import NDArray
 from scipy.fft import next_fast_len
 from torch import Tensor
 
+from ..kernels import convolve_full
+
 PsfFn = Callable[[float], NDArray[np.float64]]
 """Maps a layer's signed CoC diameter (px) to its LEFT-view PSF (k x k, k odd, sum 1/2, convolution form)."""
 
@@ -136,21 +138,6 @@ def _fft_conv_pair(tiles: Tensor, psf_l: Tensor, grid: int) -> Tensor:
     return torch.fft.irfft2(X.unsqueeze(-4) * K.unsqueeze(-3), s=(grid, grid))
 
 
-def _direct_conv_pair(stack: Tensor, psf_l: Tensor) -> Tensor:
-    """Full linear convolution of ``stack`` (B, C, h, w) with a (k, k) left PSF and its hflip, by direct
-    convolution (small kernels).
-
-    Returns (B, 2, C, h + k - 1, w + k - 1): index 0 the left view, 1 the right.
-    """
-    B, C, h, w = stack.shape
-    k = psf_l.shape[-1]
-    # conv2d correlates: flip the kernels for a true convolution; 2 outputs (left, right) per channel
-    weight = torch.stack([psf_l.flip(0, 1), psf_l.flip(0)]).to(stack.dtype)  # (2, k, k); hflip(psf) flipped
-    weight = weight[None].expand(C, 2, k, k).reshape(2 * C, 1, k, k)
-    out = F.conv2d(F.pad(stack, (k - 1,) * 4), weight, groups=C)  # (B, 2C, h + k - 1, w + k - 1)
-    return out.view(B, C, 2, h + k - 1, w + k - 1).transpose(1, 2)
-
-
 def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn, step_px: float = 1.0) -> tuple[Tensor, Tensor]:
     """Render both DP views by depth layers with coverage normalisation (module docstring).
 
@@ -190,7 +177,7 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
         stack = torch.cat([sharp[..., box.y0 : box.y1, box.x0 : box.x1] * mask, mask], dim=1)  # (B, C + 1, h, w)
         y0, x0 = box.y0 + r - k // 2, box.x0 + r - k // 2  # where the full convolution of the box starts in acc
         if k <= DIRECT_MAX_PX:
-            acc[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += _direct_conv_pair(stack, psf)
+            acc[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += convolve_full(stack, torch.stack([psf, psf.flip(1)]))
             continue
         side = max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * k)
         tiles, origins = _hit_tiles(stack, side)
