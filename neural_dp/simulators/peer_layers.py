@@ -30,30 +30,18 @@ from numpy.typing import NDArray
 from scipy.fft import next_fast_len
 from torch import Tensor
 
-from ..kernels import convolve_full
+from .. import kernels
+from ..kernels import add_full_convolution, tile_occupancy, tile_side_px
 
 PsfFn = Callable[[float], NDArray[np.float64]]
 """Maps a layer's signed CoC diameter (px) to its LEFT-view PSF (k x k, k odd, sum 1/2, convolution form)."""
 
-DIRECT_MAX_PX = 11
-"""Layer kernels at most this many px wide are applied by direct convolution on the layer's bounding box;
-larger ones by FFT."""
-
-TILE_MIN_PX = 96
-"""Smallest side of the tiles a large-kernel layer is cut into (px)."""
-
-TILE_SIDE_PER_KERNEL_PX = 2
-"""A layer with a k-px kernel is cut into tiles of side ``max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * k)``,
-so a tile's FFT grid (side + k - 1) is at most about 1.5 x its side."""
-
-TILES_PER_CHUNK = 16
-"""Tiles transformed at once (bounds the memory of the batched FFTs)."""
-
 FRAME_FFT_COST_RATIO = 1.0
-"""A large-kernel layer is convolved tile by tile (only the tiles holding its pixels) when that costs less
-than this many times accumulating its spectrum on the frame's FFT grid. Estimated cost: a tile costs a
-forward and two inverse FFTs of its grid (12 channel transforms), a frame layer a forward FFT of the frame
-grid and its spectrum products (about 6.5)."""
+"""A large-kernel layer is convolved tile by tile (only the tiles holding its pixels,
+:func:`neural_dp.kernels.add_full_convolution`) when that costs less than this many times accumulating its
+spectrum on the frame's FFT grid. Estimated cost in channel transforms of the grid's area: a tile costs a
+forward and two inverse FFTs (:data:`TILE_FFT_CHANNELS`), a frame layer a forward FFT and its spectrum
+products (:data:`FRAME_FFT_CHANNELS`)."""
 
 TILE_FFT_CHANNELS = 12.0
 FRAME_FFT_CHANNELS = 6.5
@@ -106,45 +94,14 @@ def _hflip_spectrum(spec: Tensor) -> Tensor:
     return torch.roll(spec.flip(-2), shifts=1, dims=-2).conj()
 
 
-def _hit_tiles(stack: Tensor, side: int) -> tuple[Tensor, list[tuple[int, int]]]:
-    """Cut a layer's box ``stack`` (B, C + 1, h, w; last channel its mask) into ``side`` x ``side`` tiles
-    (zero-padded at the bottom and right) and keep those holding a member.
-
-    Returns:
-        (n, B, C + 1, side, side) tiles and their n (y, x) origins in the box, px.
-    """
-    B, C1, h, w = stack.shape
-    ny, nx = -(-h // side), -(-w // side)
-    padded = F.pad(stack, (0, nx * side - w, 0, ny * side - h))
-    tiles = padded.view(B, C1, ny, side, nx, side).permute(2, 4, 0, 1, 3, 5)  # (ny, nx, B, C + 1, side, side)
-    hit = (tiles[:, :, :, -1] > 0).flatten(2).any(2)  # (ny, nx)
-    iy, ix = torch.nonzero(hit, as_tuple=True)
-    return tiles[iy, ix], [(int(a) * side, int(b) * side) for a, b in zip(iy.tolist(), ix.tolist())]
-
-
-def _fft_conv_pair(tiles: Tensor, psf_l: Tensor, grid: int) -> Tensor:
-    """Full linear convolutions of (..., h, w) images with a (k, k) left PSF and its hflip by FFT on a
-    ``grid`` x ``grid`` grid (``grid >= h + k - 1`` and ``w + k - 1``).
-
-    Returns (..., 2, h', w') with index 0 the left view and 1 the right, on the whole grid; the full
-    convolution is its top-left (h + k - 1, w + k - 1) corner.
-    """
-    k = psf_l.shape[-1]
-    X = torch.fft.rfft2(tiles, s=(grid, grid))
-    big = psf_l.new_zeros(2, grid, grid)
-    big[0, :k, :k] = psf_l
-    big[1, :k, :k] = psf_l.flip(1)
-    K = torch.fft.rfft2(big)  # (2, grid, grid // 2 + 1)
-    return torch.fft.irfft2(X.unsqueeze(-4) * K.unsqueeze(-3), s=(grid, grid))
-
-
 def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn, step_px: float = 1.0) -> tuple[Tensor, Tensor]:
     """Render both DP views by depth layers with coverage normalisation (module docstring).
 
-    Each layer is convolved only where it has members: its bounding box, grown by its kernel, by direct
-    convolution (small kernels) or an FFT of the box; a layer whose box covers most of the frame has its
-    spectrum accumulated on the frame's FFT grid instead, so all such layers share one inverse FFT per
-    view. All three are the same linear convolution (zero padding at the image border).
+    Each layer is convolved only where it has members (:func:`neural_dp.kernels.add_full_convolution`):
+    within its bounding box by direct convolution (small kernels) or by FFTs of the tiles that hold its
+    pixels; a layer spread over so many tiles that this would cost more has its spectrum accumulated on the
+    frame's FFT grid instead, and all such layers share one inverse FFT per view. All are the same linear
+    convolution (zero padding at the image border).
 
     Args:
         sharp: (B, C, H, W) linear image.
@@ -165,9 +122,7 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
     r = max(p.shape[-1] for p in psfs.values()) // 2
     Hp, Wp = next_fast_len(H + 2 * r, real=True), next_fast_len(W + 2 * r, real=True)
     # accumulators with an r-px margin: each layer's full convolution lands inside them
-    # one tile side of slack at the bottom and right: the last tiles of a layer may reach past the frame
-    slack = max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * (2 * r + 1))
-    acc = sharp.new_zeros(B, 2, C + 1, H + 2 * r + slack, W + 2 * r + slack)  # (view, colour + coverage)
+    acc = sharp.new_zeros(B, 2, C + 1, H + 2 * r, W + 2 * r)  # (view, colour + coverage)
     spec: Tensor | None = None  # frame-grid spectra of the layers accumulated there, (B, 2, C + 1, Hp, Wf)
     for level, box in boxes.items():
         psf = psfs[level]
@@ -176,18 +131,13 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
         mask = (levels[..., box.y0 : box.y1, box.x0 : box.x1] == level).to(dt)
         stack = torch.cat([sharp[..., box.y0 : box.y1, box.x0 : box.x1] * mask, mask], dim=1)  # (B, C + 1, h, w)
         y0, x0 = box.y0 + r - k // 2, box.x0 + r - k // 2  # where the full convolution of the box starts in acc
-        if k <= DIRECT_MAX_PX:
-            acc[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += convolve_full(stack, torch.stack([psf, psf.flip(1)]))
-            continue
-        side = max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * k)
-        tiles, origins = _hit_tiles(stack, side)
+        occupied = mask.amax((0, 1)) > 0  # (h, w)
+        side = tile_side_px(k)
+        n_tiles = int(tile_occupancy(occupied, side).sum())
         grid = next_fast_len(side + k - 1, real=True)
-        if TILE_FFT_CHANNELS * len(origins) * grid * grid < FRAME_FFT_COST_RATIO * FRAME_FFT_CHANNELS * Hp * Wp:
-            n_out = side + k - 1
-            for i in range(0, len(origins), TILES_PER_CHUNK):
-                full = _fft_conv_pair(tiles[i : i + TILES_PER_CHUNK], psf, grid)[..., :n_out, :n_out]
-                for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
-                    acc[..., y0 + ty : y0 + ty + n_out, x0 + tx : x0 + tx + n_out] += f
+        tiles_cost = TILE_FFT_CHANNELS * n_tiles * grid * grid
+        if k <= kernels.DIRECT_MAX_PX or tiles_cost < FRAME_FFT_COST_RATIO * FRAME_FFT_CHANNELS * Hp * Wp:
+            add_full_convolution(acc, y0, x0, stack, torch.stack([psf, psf.flip(1)]), occupied)
             continue
         frame = F.pad(stack, (box.x0 + r, Wp - box.x1 - r, box.y0 + r, Hp - box.y1 - r))
         X = torch.fft.rfft2(frame)  # (B, C + 1, Hp, Wf)
@@ -198,7 +148,7 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
         spec[:, 0].addcmul_(X, Kl)
         spec[:, 1].addcmul_(X, Kr)
     if spec is not None:
-        acc[..., : H + 2 * r, : W + 2 * r] += torch.fft.irfft2(spec, s=(Hp, Wp))[..., : H + 2 * r, : W + 2 * r]
+        acc += torch.fft.irfft2(spec, s=(Hp, Wp))[..., : H + 2 * r, : W + 2 * r]
     acc = acc[..., r : r + H, r : r + W]
     cover = (acc[:, 0, C:] + acc[:, 1, C:]).clamp_min(1e-8)
     return acc[:, 0, :C] / cover, acc[:, 1, :C] / cover

@@ -25,6 +25,7 @@ from neural_dp.simulators.base.components import ChromaticDefocus, PSFProfile
 from neural_dp.simulators.base.render import NODE_SPACING_LADDER, RenderConfig, render_layers
 from neural_dp.simulators.butterworth import ButterworthSimulator, butterworth_psf
 from neural_dp.simulators.disk import TranslatingDiskSimulator, translating_disk_psf
+from neural_dp import kernels
 from neural_dp.simulators import peer_layers
 from neural_dp.simulators.peer_layers import PsfFn, render_layered
 from neural_dp.simulators.raytrace import RayTracingSimulator, aperture_points, render_raytrace
@@ -386,7 +387,7 @@ holding a layer's pixels, several tiles per layer and chunk, spectra accumulated
 @pytest.mark.parametrize("name", ["disk", "butterworth"])
 def test_layered_peers_equal_reference(name: str, dtype: torch.dtype, path: str, monkeypatch: pytest.MonkeyPatch) -> None:
     for attr, value in LAYER_PATHS[path].items():
-        monkeypatch.setattr(peer_layers, attr, value)
+        monkeypatch.setattr(peer_layers if attr == "FRAME_FFT_COST_RATIO" else kernels, attr, value)
     b = _scene(2, 40, 56, -19.0, 26.0, dtype)
     sim, psf = ((TranslatingDiskSimulator(), translating_disk_psf) if name == "disk"
                 else (ButterworthSimulator(), butterworth_psf))
