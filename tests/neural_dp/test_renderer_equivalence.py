@@ -427,9 +427,16 @@ def test_raytrace_equals_reference_with_capped_aperture_grid() -> None:
 
 # ---- base model ---------------------------------------------------------------------------------------------
 
+BASE_PATHS = {"auto": {}, "fft_tiles_only": {"DIRECT_MAX_PX": 0, **SMALL_TILES}}
+"""Settings of neural_dp.kernels that force the base renderer's nodes through each convolution path."""
+
+
+@pytest.mark.parametrize("path", list(BASE_PATHS))
 @pytest.mark.parametrize("coc_range", [(-6.0, 8.0), (-30.0, 41.0)])
-def test_base_layers_equal_reference(coc_range: tuple[float, float]) -> None:
+def test_base_layers_equal_reference(coc_range: tuple[float, float], path: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Small blurs (direct convolutions only) and large ones (FFT nodes, the node spacing ladder)."""
+    for attr, value in BASE_PATHS[path].items():
+        monkeypatch.setattr(kernels, attr, value)
     b = _scene(2, 48, 64, *coc_range, torch.float32, seed=4)
     model = BaseModel(rim_softness_px=0.7)
     cfg = model.config
@@ -441,8 +448,11 @@ def test_base_layers_equal_reference(coc_range: tuple[float, float]) -> None:
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
 
 
-def test_base_layers_equal_reference_per_channel_psfs_and_cocs() -> None:
+@pytest.mark.parametrize("path", list(BASE_PATHS))
+def test_base_layers_equal_reference_per_channel_psfs_and_cocs(path: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Per-channel kernels (a PSF component with chromatic CoCs): the 6-channel path."""
+    for attr, value in BASE_PATHS[path].items():
+        monkeypatch.setattr(kernels, attr, value)
     b = _scene(1, 40, 52, -20.0, 24.0, torch.float32, seed=5)
     chroma = ChromaticDefocus()
     chroma.params = {"focal_shift_r_mm": 0.4, "focal_shift_b_mm": -0.3}
@@ -453,5 +463,18 @@ def test_base_layers_equal_reference_per_channel_psfs_and_cocs() -> None:
     kfn = model._kernel_fn(0.0)
     left, right = render_layers(b.sharp, coc, b.valid, kfn, model.config)
     ref_l, ref_r = _reference_render_layers(b.sharp, coc, b.valid, kfn, model.config)
+    torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
+    torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
+
+
+def test_base_full_disc_layers_equal_reference() -> None:
+    """Symmetric kernels (the sharp frame's own blur, sharp_radiance): the right view reuses the left one."""
+    from neural_dp.simulators.base.psf import full_disc_kernels
+
+    b = _scene(2, 40, 52, -9.0, 7.0, torch.float32, seed=6)
+    cfg = RenderConfig()
+    kfn = lambda nodes: full_disc_kernels(nodes, cfg.supersample)  # noqa: E731
+    left, right = render_layers(b.sharp, b.coc_px, b.valid, kfn, cfg)
+    ref_l, ref_r = _reference_render_layers(b.sharp, b.coc_px, b.valid, kfn, cfg)
     torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
