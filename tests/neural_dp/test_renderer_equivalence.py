@@ -21,7 +21,9 @@ from torch import Tensor
 from dp5k_common.errors import BadInputError
 from neural_dp.batch import DPBatch
 from neural_dp.simulators.base import BaseModel
+from neural_dp.metrics import gaussian_window
 from neural_dp.simulators.base.components import ChromaticDefocus, PSFProfile
+from neural_dp.simulators.base.psf import _half_disc_kernel
 from neural_dp.simulators.base.render import NODE_SPACING_LADDER, RenderConfig, render_layers
 from neural_dp.simulators.butterworth import ButterworthSimulator, butterworth_psf
 from neural_dp.simulators.disk import TranslatingDiskSimulator, translating_disk_psf
@@ -345,6 +347,75 @@ def _reference_fractional_index(coc: Tensor, nodes: Tensor) -> Tensor:
     return i.float() + (c - lo) / (hi - lo)
 
 
+def _reference_fine_supersample(n: int) -> int:
+    return next(ss for n_max, ss in ((9, 15), (25, 7), (2**31, 5)) if n <= n_max)
+
+
+def _reference_soften(w: Tensor, sigma_fine: float) -> Tensor:
+    """(N, N) fine-grid PSF convolved with a Gaussian of ``sigma_fine`` fine samples (zero outside);
+    unchanged below 0.3 samples."""
+    if sigma_fine <= 0.3:
+        return w
+    r = int(math.ceil(3 * sigma_fine))
+    g = gaussian_window(2 * r + 1, sigma_fine, device=w.device)
+    w = F.conv2d(F.pad(w[None, None], (r, r, 0, 0)), g.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(w, (0, 0, r, r)), g.view(1, 1, -1, 1))[0, 0]
+
+
+def _reference_half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
+                      pixel_box: float = 0.0, supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
+    r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
+
+    With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
+
+    .. math::
+        D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
+        P(\rho) = \max(0, 1 + a_2 q + a_4 q^2), \quad q = \min(\rho / R', 1)^2
+        S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < 0], \quad k' = k R / R'
+        H_l = ((1 - \beta) \mathrm{tent} + \beta\, \mathrm{box})(G_\sigma * (D P S)) / \sum
+
+    ``G_sigma`` is a Gaussian of standard deviation ``softness_px`` (the lens' residual blur, px). ``tent``
+    samples the fine PSF at pixel centres through a 2-px triangle: the sharp image is reconstructed by
+    linear interpolation between pixel centres, so a sub-pixel disc keeps its exact centroid
+    (:math:`-2 c / (3 \pi)` px for the left view), i.e. DP disparity does not vanish below 1 px, and
+    ``c = 0`` is exactly the identity. ``box`` integrates it over each pixel's area instead (each sharp
+    pixel a uniform square of light, as a renderer that draws anti-aliased discs on the pixel grid
+    assumes): a half disc inside the centre pixel then stays there (centroid 0 up to ~0.7 px of CoC,
+    -0.10 px at 1.3 px against -0.28 exact). ``beta = pixel_box``; ``c = 0`` is the identity for every
+    ``beta``. ``supersample`` is a lower bound on ``ss``.
+
+    Returns:
+        (n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
+    """
+    coc, scale_t, soft, a2, a4, split_t = (torch.tensor(v, device=device, dtype=torch.float32)
+                                            for v in (coc_px, scale, softness_px, rim2, rim4, split))
+    beta = min(max(float(pixel_box), 0.0), 1.0)
+    R = coc.abs() * scale_t / 2  # px
+    sigma = soft.clamp(min=0.0)
+    half = int(math.ceil(float(R + 3 * sigma))) + 2
+    n = 2 * half + 1
+    ss = max(_reference_fine_supersample(n), supersample | 1)
+    fine = (torch.arange(n * ss, device=device, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
+    fy, fx = torch.meshgrid(fine, fine, indexing="ij")
+    rho = torch.sqrt(fx**2 + fy**2)  # (N, N)
+    Reff = R.clamp(min=0.5 / ss)
+    disc = ((Reff - rho) * ss + 0.5).clamp(0.0, 1.0)
+    q = (rho / Reff).clamp(max=1.0) ** 2
+    prof_w = (1.0 + a2 * q + a4 * q * q).clamp(min=0.0)
+    sign = 1.0 if coc_px >= 0 else -1.0
+    left_half = (fx * sign < 0).float() + 0.5 * (fx == 0).float()
+    sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
+    w = _reference_soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
+    tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
+    p = (ss - 1) // 2
+    wp = F.pad(w[None, None], (p, p, p, p))
+    out = F.conv2d(F.conv2d(wp, tent.view(1, 1, 1, -1), stride=(1, ss)), tent.view(1, 1, -1, 1), stride=(ss, 1))[0, 0]
+    if beta > 0:  # pixel i holds the fine samples i ss .. i ss + ss - 1, centred on its centre like the tent's
+        box = w.reshape(n, ss, n, ss).sum(dim=(1, 3)) / (ss * ss)
+        out = (1.0 - beta) * out + beta * box
+    return out / out.sum().clamp(min=1e-12)
+
+
 # ---- scenes ---------------------------------------------------------------------------------------------
 
 def _scene(B: int, H: int, W: int, coc_lo: float, coc_hi: float, dtype: torch.dtype, seed: int = 0) -> DPBatch:
@@ -478,3 +549,14 @@ def test_base_full_disc_layers_equal_reference() -> None:
     ref_l, ref_r = _reference_render_layers(b.sharp, b.coc_px, b.valid, kfn, cfg)
     torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
+
+
+@pytest.mark.parametrize("node", [
+    (0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0), (0.7, 1.0, 0.5, 0.0, 0.0, 1.0, 0.0), (-3.2, 1.0, 0.5, 0.0, 1.5, 1.0, 0.3),
+    (12.5, 1.1, 1.2, -0.4, 0.2, 0.8, 1.0), (-41.0, 1.0, 0.5, 0.0, 0.0, 1.0, 0.0), (73.0, 1.0, 2.0, 0.0, 0.0, 0.0, 0.5),
+])
+def test_base_kernels_equal_reference(node: tuple[float, ...]) -> None:
+    """The half-disc kernels (softening and pixel sampling now as band-matrix products) equal the
+    conv2d-built ones."""
+    torch.testing.assert_close(_half_disc_kernel(*node, supersample=4), _reference_half_disc_kernel(*node, supersample=4),
+                               atol=1e-8, rtol=1e-5)
