@@ -180,8 +180,8 @@ def convolve_full(x: Tensor, psfs: Tensor, *, backend: str = "auto") -> Tensor:
     Args:
         x: (B, C, h, w).
         psfs: (V, k, k), the same PSFs for every channel, or (V, C, k, k), one per channel; k odd.
-        backend: ``"auto"`` (``cv2.filter2D`` per channel for float32/float64 on the CPU, ``conv2d``
-            otherwise), ``"opencv"`` or ``"torch"``.
+        backend: ``"auto"`` (``cv2.filter2D`` per channel for float32/float64 on the CPU without autograd,
+            ``conv2d`` otherwise), ``"opencv"`` or ``"torch"``.
 
     Returns:
         (B, V, C, h + k - 1, w + k - 1).
@@ -194,7 +194,8 @@ def convolve_full(x: Tensor, psfs: Tensor, *, backend: str = "auto") -> Tensor:
                             where="convolve_full")
     r = k // 2
     if backend == "auto":
-        backend = "opencv" if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) else "torch"
+        on_cpu = x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+        backend = "opencv" if on_cpu and not (x.requires_grad or psfs.requires_grad) else "torch"
     if backend == "opencv":
         src = x.detach().contiguous().numpy()
         kern = psfs.detach().to(x.dtype).flip(-1, -2).contiguous().numpy()  # filter2D correlates
