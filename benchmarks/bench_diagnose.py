@@ -1,17 +1,24 @@
 """Benchmark ``dp5k diagnose`` (base model): wall time against pairs and pixels.
 
-Usage: ``.venv/bin/python benchmarks/bench_diagnose.py [--quick]``. Makes studio datasets (clean) in a temp
-folder and prints a table: pairs, image size, time per stage. The target: 30 pairs of 288 x 192 within
-3 minutes on the project's 2-core machine. The row marked ``*`` is the target case again with
-``sharp_f_number`` removed from every params.json: diagnose then runs fit and detection twice (f/22 and
-all-in-focus readings of ``sharp``, docs/diagnose.md).
+Usage: ``.venv/bin/python benchmarks/bench_diagnose.py [--quick | --large-blur]``. Makes studio datasets
+(clean) in a temp folder and prints a table: pairs, image size, the largest |CoC|, the machine's load, time
+per stage. The target: 30 pairs of 288 x 192 within 3 minutes on the project's 2-core machine. The row
+marked ``*`` is a case again with ``sharp_f_number`` removed from every params.json: diagnose then runs fit
+and detection twice (f/22 and all-in-focus readings of ``sharp``, docs/diagnose.md).
+
+``--large-blur`` runs issue 22's large-blur cases only: the ``near`` scene (spheres 0.26-0.85 m before a
+wall) at 250 x 170, 2 cameras x 5 f-numbers (10 pairs, discs up to about 87 px), without
+``sharp_f_number`` (target: under 3 minutes), and a 24-pair 256 x 170 set of random scenes (target: under
+1 minute).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -25,34 +32,49 @@ def main() -> None:
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="only the 30-pair 288x192 target case")
+    ap.add_argument("--large-blur", action="store_true", help="only issue 22's large-blur cases")
     args = ap.parse_args()
-    # (scenes, cameras, f-numbers, size): pairs = scenes * cameras * f-numbers
-    cases = [(3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (288, 192))]
-    if not args.quick:
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    print(f"{datetime.datetime.now():%Y-%m-%d %H:%M}, commit {commit}, {os.cpu_count()} CPUs")
+    # (scenes, cameras, f-numbers, size, strip sharp_f_number): pairs = scenes * cameras * f-numbers
+    cases = [(3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (288, 192), True)]
+    if args.large_blur:
+        cases = [(["near"], 2, (1.8, 2.0, 2.8, 4.0, 5.6), (250, 170), True), (4, 2, (1.8, 2.0, 2.8), (256, 170), False)]
+    elif not args.quick:
         cases += [
-            (3, 2, (1.8, 2.8), (288, 192)),
-            (6, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (288, 192)),
-            (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (144, 96)),
-            (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (576, 384)),
+            (3, 2, (1.8, 2.8), (288, 192), False),
+            (6, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (288, 192), False),
+            (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (144, 96), False),
+            (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (576, 384), False),
         ]
-    print(f"{'pairs':>5} {'size':>9} {'load':>6} {'fit':>6} {'detect':>7} {'gain':>6} {'total s':>8}")
+    print(f"{'pairs':>5} {'size':>9} {'max|CoC|':>8} {'cpu load':>8} {'load':>6} {'fit':>6} {'detect':>7} {'gain':>6} {'total s':>8}")
     with tempfile.TemporaryDirectory() as tmp:
-        for i, (scenes, cams, fns, size) in enumerate(cases):
+        for i, (scenes, cams, fns, size, strip) in enumerate(cases):
             root = Path(tmp) / f"ds{i}"
             make_dataset(root, scenes=scenes, size=size, f_numbers=fns, cameras=tuple(range(cams)), seed=i)
+            n = (len(scenes) if isinstance(scenes, list) else scenes) * cams * len(fns)
+            coc = _max_abs_coc(root)
             t0 = time.perf_counter()
-            d = diagnose_base(root)
-            tt = d.timings_s
-            n = scenes * cams * len(fns)
-            print(f"{n:5d} {size[0]:>4}x{size[1]:<4} {tt['load']:6.1f} {tt['fit_base']:6.1f} {tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}")
-            if i == 0:
+            tt = diagnose_base(root).timings_s
+            print(f"{n:5d} {size[0]:>4}x{size[1]:<4} {coc:8.1f} {os.getloadavg()[0]:8.1f} {tt['load']:6.1f} {tt['fit_base']:6.1f} "
+                  f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}", flush=True)
+            if strip:
                 for f in (root / "pairs").glob("*/params.json"):
                     obj = json.loads(f.read_text())
                     obj.pop("sharp_f_number", None)
                     f.write_text(json.dumps(obj))
                 t0 = time.perf_counter()
                 tt = diagnose_base(root).timings_s
-                print(f"{n:5d} {size[0]:>4}x{size[1]:<3}* {tt['load']:6.1f} {tt['fit_base']:6.1f} {tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}")
+                print(f"{n:5d} {size[0]:>4}x{size[1]:<3}* {coc:8.1f} {os.getloadavg()[0]:8.1f} {tt['load']:6.1f} {tt['fit_base']:6.1f} "
+                      f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}", flush=True)
+
+
+def _max_abs_coc(root: Path) -> float:
+    """Largest |CoC| (px) over a dataset's pairs (their coc.tif)."""
+    import numpy as np
+    import tifffile
+
+    return max(float(np.nanmax(np.abs(tifffile.imread(f)))) for f in (root / "pairs").glob("*/coc.tif"))
 
 
 if __name__ == "__main__":

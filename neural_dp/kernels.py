@@ -7,7 +7,13 @@ Two ways of blurring live here:
   padded input. It keeps only the padded input and the weights alive for backward, about 3x less memory
   than ``F.unfold`` (``_apply_kernels_unfold`` is kept as the reference the tests compare against).
 * :func:`convolve_same` convolves a whole image with one PSF (true convolution, zero padding), switching
-  to FFT for large kernels; the layered peer simulators use it.
+  to FFT for large kernels.
+* :func:`convolve_full` convolves every channel with each of a few small PSFs (the left and right views
+  of a layer), full output; on the CPU with OpenCV's ``filter2D`` (10-25 x faster than a grouped
+  ``conv2d`` for 3-9 px kernels on this project's CPU).
+* :func:`add_full_convolution` adds such a full convolution of a sparse layer into an accumulator: small
+  kernels directly, large ones by batched FFTs of only the tiles that hold the layer's pixels. The layered
+  renderers (peers and base model) use it.
 
 Kernel layout convention: a flattened kernel index ``t = i * K + j`` is row ``i`` (y offset ``i - K//2``)
 and column ``j`` (x offset ``j - K//2``). The weights are a *gather* kernel:
@@ -24,11 +30,29 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from scipy.fft import next_fast_len
+
 from dp5k_common.errors import BadInputError
+
+DIRECT_MAX_PX = 11
+"""Kernels at most this many px wide are applied by direct convolution (:func:`convolve_full`), larger
+ones by FFT of tiles (:func:`add_full_convolution`)."""
+
+TILE_MIN_PX = 96
+"""Smallest side of the tiles a layer is cut into for FFT convolution (px)."""
+
+TILE_SIDE_PER_KERNEL_PX = 2
+"""A layer convolved with a k-px kernel is cut into tiles of side ``max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX
+* k)``, so a tile's FFT grid (side + k - 1) stays within about 1.5 x its side."""
+
+TILES_PER_CHUNK = 16
+"""Tiles transformed at once (bounds the memory of the batched FFTs)."""
 
 
 def _kernel_size(weights: Tensor, dim: int) -> int:
@@ -142,3 +166,122 @@ def convolve_same(x: Tensor, psf: Tensor, *, fft_above: int = 21) -> Tensor:
     K = torch.fft.rfft2(psf.to(x.dtype), s=(Hp, Wp))
     full = torch.fft.irfft2(X * K, s=(Hp, Wp))
     return full[..., r : r + H, r : r + W]
+
+
+def convolve_full(x: Tensor, psfs: Tensor, *, backend: str = "auto") -> Tensor:
+    """Full 2-D convolutions (true convolution, zero outside ``x``) of every channel with each of V PSFs.
+
+    .. math::
+        out_v(y, x) = \\sum_{i,j} psf_v(i, j)\\, x(y - i, x - j), \\qquad 0 \\le y < h + k - 1
+
+    so the centre of a ``psf`` sits at ``(k//2, k//2)``: the input pixel ``(y, x)`` lands at
+    ``(y + k//2, x + k//2)`` for a centred delta.
+
+    Args:
+        x: (B, C, h, w).
+        psfs: (V, k, k), the same PSFs for every channel, or (V, C, k, k), one per channel; k odd.
+        backend: ``"auto"`` (``cv2.filter2D`` per channel for float32/float64 on the CPU without autograd,
+            ``conv2d`` otherwise), ``"opencv"`` or ``"torch"``.
+
+    Returns:
+        (B, V, C, h + k - 1, w + k - 1).
+    """
+    B, C, h, w = x.shape
+    V, k = psfs.shape[0], psfs.shape[-1]
+    per_channel = psfs.ndim == 4
+    if psfs.shape[-2] != k or k % 2 == 0 or (per_channel and psfs.shape[1] != C):
+        raise BadInputError(f"psfs {tuple(psfs.shape)} do not fit an image of {C} channels with odd square kernels",
+                            where="convolve_full")
+    r = k // 2
+    if backend == "auto":
+        on_cpu = x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+        backend = "opencv" if on_cpu and not (x.requires_grad or psfs.requires_grad) else "torch"
+    if backend == "opencv":
+        src = x.detach().contiguous().numpy()
+        kern = psfs.detach().to(x.dtype).flip(-1, -2).contiguous().numpy()  # filter2D correlates
+        out = np.empty((B, V, C, h + 2 * r, w + 2 * r), dtype=src.dtype)
+        for b in range(B):
+            for c in range(C):
+                padded = cv2.copyMakeBorder(src[b, c], r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+                for v in range(V):
+                    kv = kern[v, c] if per_channel else kern[v]
+                    out[b, v, c] = cv2.filter2D(padded, -1, kv, borderType=cv2.BORDER_CONSTANT)
+        return torch.from_numpy(out)
+    weight = psfs.flip(-1, -2).to(x.dtype)  # conv2d correlates
+    weight = weight.transpose(0, 1) if per_channel else weight[None].expand(C, V, k, k)  # (C, V, k, k)
+    out = F.conv2d(F.pad(x, (k - 1,) * 4), weight.reshape(C * V, 1, k, k), groups=C)
+    return out.view(B, C, V, h + k - 1, w + k - 1).transpose(1, 2)
+
+
+def tile_side_px(k: int) -> int:
+    """Side (px) of the tiles used to convolve with a k-px kernel by FFT."""
+    return max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * k)
+
+
+def tile_occupancy(occupied: Tensor, side: int) -> Tensor:
+    """(ny, nx) bool: which ``side`` x ``side`` tiles of an (h, w) bool map hold a True (tiles from the top
+    left; the last row and column may be partial)."""
+    h, w = occupied.shape
+    ny, nx = -(-h // side), -(-w // side)
+    return F.pad(occupied, (0, nx * side - w, 0, ny * side - h)).view(ny, side, nx, side).any(3).any(1)
+
+
+def occupied_tiles(x: Tensor, occupied: Tensor, side: int) -> tuple[Tensor, list[tuple[int, int]]]:
+    """Cut ``x`` (B, C, h, w) into ``side`` x ``side`` tiles (zero-padded at the bottom and right) and keep
+    those where ``occupied`` (h, w) bool holds a True.
+
+    Returns:
+        (n, B, C, side, side) tiles and their n (y, x) origins in ``x``, px.
+    """
+    B, C, h, w = x.shape
+    ny, nx = -(-h // side), -(-w // side)
+    padded = F.pad(x, (0, nx * side - w, 0, ny * side - h))
+    tiles = padded.view(B, C, ny, side, nx, side).permute(2, 4, 0, 1, 3, 5)  # (ny, nx, B, C, side, side)
+    iy, ix = torch.nonzero(tile_occupancy(occupied, side), as_tuple=True)
+    return tiles[iy, ix], [(int(a) * side, int(b) * side) for a, b in zip(iy.tolist(), ix.tolist())]
+
+
+def fft_convolve_full(x: Tensor, psfs: Tensor, grid: int) -> Tensor:
+    """Full linear convolutions of (..., C, h, w) images with V PSFs (V, k, k) or (V, C, k, k) by FFT on a
+    ``grid`` x ``grid`` grid (``grid >= h + k - 1`` and ``w + k - 1``).
+
+    Returns:
+        (..., V, C, grid, grid); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
+    """
+    k = psfs.shape[-1]
+    X = torch.fft.rfft2(x, s=(grid, grid)).unsqueeze(-4)  # (..., 1, C, grid, grid // 2 + 1)
+    big = psfs.new_zeros(*psfs.shape[:-2], grid, grid).to(x.dtype)
+    big[..., :k, :k] = psfs
+    K = torch.fft.rfft2(big)
+    if psfs.ndim == 3:
+        K = K.unsqueeze(-3)  # (V, 1, grid, grid // 2 + 1): the same PSF for every channel
+    return torch.fft.irfft2(X * K, s=(grid, grid))
+
+
+def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None) -> None:
+    """``dest[:, :, :, y0 + i, x0 + j] += full(x * psf_v)[i, j]`` for every PSF v (in place).
+
+    Kernels up to :data:`DIRECT_MAX_PX` wide by :func:`convolve_full`; larger ones by :func:`fft_convolve_full`
+    of only the tiles of ``x`` that hold a True of ``occupied`` (h, w) (``x`` is zero elsewhere; default:
+    every tile), :data:`TILES_PER_CHUNK` at a time.
+
+    Args:
+        dest: (B, V, C, Hd, Wd); it must hold the full convolution's (h + k - 1, w + k - 1) extent at
+            (y0, x0).
+        x: (B, C, h, w).
+        psfs: (V, k, k) or (V, C, k, k), k odd (true convolution: mass at u < 0 moves content left).
+    """
+    h, w = x.shape[-2:]
+    k = psfs.shape[-1]
+    if k <= DIRECT_MAX_PX:
+        dest[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += convolve_full(x, psfs).to(dest.device)
+        return
+    side = tile_side_px(k)
+    occ = occupied if occupied is not None else torch.ones(h, w, dtype=torch.bool, device=x.device)
+    tiles, origins = occupied_tiles(x, occ, side)
+    grid = next_fast_len(side + k - 1, real=True)
+    for i in range(0, len(origins), TILES_PER_CHUNK):
+        full = fft_convolve_full(tiles[i : i + TILES_PER_CHUNK], psfs, grid)
+        for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
+            ny, nx = min(side + k - 1, h + k - 1 - ty), min(side + k - 1, w + k - 1 - tx)
+            dest[..., y0 + ty : y0 + ty + ny, x0 + tx : x0 + tx + nx] += f[..., :ny, :nx]

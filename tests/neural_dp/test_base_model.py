@@ -107,6 +107,7 @@ def test_surface_split_between_two_nodes_stays_opaque() -> None:
 def test_direct_and_fft_blurs_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     """Small kernels are applied by direct convolution on each node's bounding box, large ones by FFT:
     forcing every node through the FFT path gives the same views."""
+    import neural_dp.kernels as kernels_mod
     import neural_dp.simulators.base.render as base_mod
 
     rng = np.random.default_rng(1)
@@ -115,8 +116,8 @@ def test_direct_and_fft_blurs_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     coc[..., 10:25, 15:30] = -7.0
     model = BaseModel(rim_softness_px=0.4)
     mixed = model(make_batch(sharp, coc))
-    assert any(2 * base_mod._support(k) + 1 <= base_mod.DIRECT_MAX_PX for k in model._kernel_fn(0.0)(torch.tensor([0.0, 1.0, 2.0])))
-    monkeypatch.setattr(base_mod, "DIRECT_MAX_PX", 0)
+    assert any(2 * base_mod._support(k) + 1 <= kernels_mod.DIRECT_MAX_PX for k in model._kernel_fn(0.0)(torch.tensor([0.0, 1.0, 2.0])))
+    monkeypatch.setattr(kernels_mod, "DIRECT_MAX_PX", 0)
     fft_only = model(make_batch(sharp, coc))
     for a, b in zip(mixed, fft_only):
         assert torch.allclose(a, b, atol=1e-5)

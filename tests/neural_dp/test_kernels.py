@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from neural_dp.kernels import _apply_kernels_unfold, apply_kernels, convolve_same, flip_lr
+import torch.nn.functional as F
+
+from neural_dp.kernels import _apply_kernels_unfold, apply_kernels, convolve_full, convolve_same, flip_lr
 
 
 def _delta(B: int, K: int, H: int, W: int, i: int, j: int) -> torch.Tensor:
@@ -66,3 +68,27 @@ def test_convolve_same_is_true_convolution_both_paths(k: int) -> None:
     out = convolve_same(x, psf)
     assert out[0, 0].argmax().item() == 20 * 50 + 25 - k // 2
     assert float(out.sum()) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("backend", ["opencv", "torch"])
+def test_convolve_full_is_true_full_convolution(backend: str) -> None:
+    """A delta lands at the PSF's centre offset, content follows the PSF's mass (u < 0 moves it left),
+    and random images match ``conv2d`` with the flipped kernel, shared and per-channel PSFs."""
+    x = torch.zeros(1, 1, 9, 11, dtype=torch.float64)
+    x[..., 4, 5] = 1.0
+    psf = torch.zeros(2, 5, 5, dtype=torch.float64)
+    psf[0, 2, 0] = 1.0  # mass at u = -2
+    psf[1, 2, 2] = 1.0  # identity
+    out = convolve_full(x, psf, backend=backend)
+    assert out.shape == (1, 2, 1, 13, 15)
+    assert out[0, 1, 0].argmax().item() == (4 + 2) * 15 + 5 + 2
+    assert out[0, 0, 0].argmax().item() == (4 + 2) * 15 + 5
+    torch.manual_seed(0)
+    for dtype in (torch.float32, torch.float64):
+        x = torch.rand(2, 3, 14, 19, dtype=dtype)
+        for psfs in (torch.rand(2, 7, 7, dtype=dtype), torch.rand(2, 3, 7, 7, dtype=dtype)):
+            got = convolve_full(x, psfs, backend=backend)
+            w = psfs if psfs.ndim == 4 else psfs[:, None].expand(2, 3, 7, 7)
+            for v in range(2):
+                ref = F.conv2d(F.pad(x, (6, 6, 6, 6)), w[v].flip(-1, -2)[:, None], groups=3)
+                torch.testing.assert_close(got[:, v], ref, atol=1e-5, rtol=1e-5)

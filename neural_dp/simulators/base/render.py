@@ -10,11 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
-from scipy.fft import next_fast_len
 from torch import Tensor
 
-__all__ = ["RenderConfig", "render_layers", "DIRECT_MAX_PX", "NODE_SPACING_LADDER"]
+from ...kernels import add_full_convolution
+
+__all__ = ["RenderConfig", "render_layers", "NODE_SPACING_LADDER"]
 
 
 @dataclass
@@ -84,21 +84,6 @@ def _node_side(extent: float, step: float, rel: float) -> list[float]:
     return out
 
 
-def _embed_kernel_fft(kernels: Tensor, Hp: int, Wp: int) -> Tensor:
-    """rfft2 of (..., n, n) kernels placed with their centre at (0, 0) of an (Hp, Wp) grid."""
-    n = kernels.shape[-1]
-    h = n // 2
-    big = kernels.new_zeros(kernels.shape[:-2] + (Hp, Wp))
-    big[..., :n, :n] = kernels
-    big = torch.roll(big, shifts=(-h, -h), dims=(-2, -1))
-    return torch.fft.rfft2(big)
-
-
-DIRECT_MAX_PX = 9
-"""Kernels whose support is at most this many px wide are applied by direct convolution on the node's
-bounding box (most nodes near focus); larger ones by FFT over the whole frame."""
-
-
 def _support(k: Tensor, tol: float = 1e-7) -> int:
     """Half-width (px) of the centred square holding every entry of ``k`` (..., n, n) above ``tol``."""
     n = k.shape[-1]
@@ -120,6 +105,31 @@ def _fractional_index(coc: Tensor, nodes: Tensor) -> Tensor:
     return i.float() + (c - lo) / (hi - lo)
 
 
+def _node_boxes(t: Tensor, K: int) -> dict[int, tuple[int, int, int, int]]:
+    """Bounding box ``(y0, y1, x0, x1)`` (px, ends exclusive) of the pixels with a positive weight on each node,
+    from their fractional node index ``t`` (B, Cc, H, W), over batch and channels; nodes without any are left
+    out. A pixel with index ``t`` weighs on nodes ``floor(t)`` and ``ceil(t)``."""
+    H, W = t.shape[-2:]
+    t = t.detach().cpu()
+    lo = torch.floor(t).clamp(0, K - 1).to(torch.int64)
+    hi = torch.ceil(t).clamp(0, K - 1).to(torch.int64)
+    rows = torch.arange(H).view(1, 1, H, 1).expand_as(lo).reshape(-1)
+    cols = torch.arange(W).view(1, 1, 1, W).expand_as(lo).reshape(-1)
+    idx = torch.cat([lo.reshape(-1), hi.reshape(-1)])
+    rows, cols = torch.cat([rows, rows]), torch.cat([cols, cols])
+    y0 = torch.full((K,), H).scatter_reduce(0, idx, rows, "amin")
+    y1 = torch.full((K,), -1).scatter_reduce(0, idx, rows, "amax")
+    x0 = torch.full((K,), W).scatter_reduce(0, idx, cols, "amin")
+    x1 = torch.full((K,), -1).scatter_reduce(0, idx, cols, "amax")
+    return {k: (a, b + 1, c, d + 1) for k, (a, b, c, d) in enumerate(zip(y0.tolist(), y1.tolist(), x0.tolist(), x1.tolist()))
+            if b >= 0}
+
+
+SYMMETRY_TOL = 1e-6
+"""A kernel whose hflip differs from it by at most this fraction of its peak is symmetric (full discs, the
+in-focus node): its right view equals its left one and is not convolved again."""
+
+
 def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: RenderConfig) -> tuple[Tensor, Tensor]:
     r"""Occlusion-aware layered DP rendering (before gain).
 
@@ -136,6 +146,11 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     nodes (:math:`m + (1 - m) = 1`) stays opaque to what lies behind it, and the bins of one continuous
     surface do not occlude each other (no seams).
 
+    Work per node is confined to where it has members: its layer is blurred over its bounding box
+    (directly for small kernels, by FFTs of the tiles holding its pixels for large ones,
+    :func:`neural_dp.kernels.add_full_convolution`) and composited over that box grown by the kernel's
+    support, outside which its blur is zero.
+
     Args:
         sharp: (B, 3, H, W) linear sharp image.
         coc: (B, Cc, H, W), Cc in {1, 3}: signed CoC per pixel (per colour channel), px.
@@ -151,18 +166,12 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     K = nodes.shape[0]
     kl = kernel_fn(nodes)  # (K, Ck, n, n)
     Ck, n = kl.shape[1], kl.shape[-1]
-    pad = n // 2 + 1
-    Hp, Wp = next_fast_len(H + 2 * pad, real=True), next_fast_len(W + 2 * pad, real=True)
     support = [_support(kl[k]) for k in range(K)]
-    big = [k for k in range(K) if 2 * support[k] + 1 > DIRECT_MAX_PX]
-    spectra: dict[int, tuple[Tensor, Tensor]] = {}  # node -> rfft2 of its left and right kernels (Ck, Hp, Wf)
-    if big:
-        fl, fr = _embed_kernel_fft(kl[big], Hp, Wp), _embed_kernel_fft(kl[big].flip(-1), Hp, Wp)
-        spectra = {k: (fl[i], fr[i]) for i, k in enumerate(big)}
     per_channel = Ck == 3 or coc.shape[1] == 3
     nc = 3 if per_channel else 1
     t = _fractional_index(coc, nodes)  # (B, Cc, H, W)
     node_c = [float(c) for c in nodes]
+    psfs = [_view_psfs(kl[k], support[k], 3 + nc) for k in range(K)]
 
     def occludes(c_near: float, c_far: float) -> bool:
         return c_far - c_near > max(cfg.occlude_min_px, cfg.occlude_rel * max(abs(c_near), abs(c_far)))
@@ -172,73 +181,64 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
         s = sharp[b0 : b0 + cfg.chunk]
         tt = t[b0 : b0 + cfg.chunk]
         nb = s.shape[0]
+        boxes = _node_boxes(tt, K)
         acc = {v: torch.zeros_like(s) for v in ("l", "r")}
         cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in ("l", "r")}
         trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in ("l", "r")}
-        pending: list[tuple[float, dict[str, Tensor]]] = []
+        pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = []
         for k in range(K):
-            m = (1.0 - (tt - k).abs()).clamp(min=0.0)  # (nb, Cc, H, W) soft membership
-            hit = (m > 0).flatten(0, 1).any(0)
-            if not bool(hit.any()):
+            if k not in boxes:
                 continue
             group = [p for p in pending if occludes(p[0], node_c[k])]
             if group:
-                for v in ("l", "r"):
-                    trans[v] = trans[v] * (1.0 - sum(p[1][v] for p in group)).clamp(0.0, 1.0)
+                _occlude(trans, group)
                 pending = [p for p in pending if not occludes(p[0], node_c[k])]
-            m = m.expand(nb, 3, H, W) if per_channel else m
-            sig = torch.cat([s * m, m], dim=1)  # (nb, 3 + nc, H, W)
-            blurred = _blur_node(sig, kl[k], support[k], hit, spectra.get(k), pad, Hp, Wp)
+            y0, y1, x0, x1 = boxes[k]
+            sup = support[k]
+            m = (1.0 - (tt[..., y0:y1, x0:x1] - k).abs()).clamp(min=0.0)  # (nb, Cc, h, w) soft membership
+            occupied = (m > 0).flatten(0, 1).any(0)
+            m = m.expand(nb, 3, *m.shape[-2:]) if per_channel else m
+            sig = torch.cat([s[..., y0:y1, x0:x1] * m, m], dim=1)  # (nb, 3 + nc, h, w)
+            full = sig.new_zeros(nb, psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
+            add_full_convolution(full, 0, 0, sig, psfs[k], occupied)
+            # the blur covers the box grown by the support, clipped to the frame
+            ry0, ry1, rx0, rx1 = max(y0 - sup, 0), min(y1 + sup, H), max(x0 - sup, 0), min(x1 + sup, W)
+            full = full[..., ry0 - (y0 - sup) : ry1 - (y0 - sup), rx0 - (x0 - sup) : rx1 - (x0 - sup)]
+            reg = (ry0, ry1, rx0, rx1)
             alphas = {}
             for v in ("l", "r"):
-                col, alpha = blurred[v][:, :3], blurred[v][:, 3 : 3 + nc].clamp(0.0, 1.0)
-                acc[v] = acc[v] + trans[v] * col
-                cov[v] = cov[v] + trans[v] * alpha
+                blurred = full[:, 0 if v == "l" else -1]
+                col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
+                tr = trans[v][..., ry0:ry1, rx0:rx1]
+                acc[v][..., ry0:ry1, rx0:rx1] += tr * col
+                cov[v][..., ry0:ry1, rx0:rx1] += tr * alpha
                 alphas[v] = alpha
-            pending.append((node_c[k], alphas))
+            pending.append((node_c[k], reg, alphas))
         outs.append(tuple(acc[v] / cov[v].clamp(min=1e-6) for v in ("l", "r")))
     return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs])
 
 
-def _blur_node(sig: Tensor, kernel: Tensor, support: int, hit: Tensor, spectra: tuple[Tensor, Tensor] | None,
-               pad: int, Hp: int, Wp: int) -> dict[str, Tensor]:
-    """Blur one node's layer ``sig`` (B, C, H, W: colour then alpha, C = 4 or 6) with its left kernel
-    ``kernel`` (Ck, n, n) and its hflip; per-channel kernels (Ck = 3) come with C = 6.
+def _view_psfs(kernel: Tensor, support: int, channels: int) -> Tensor:
+    """The left kernel ``kernel`` (Ck, n, n) cropped to ``support`` and its hflip (the right kernel) as PSFs
+    for :func:`neural_dp.kernels.add_full_convolution`: (V, n', n') shared by all channels (Ck = 1) or
+    (V, channels, n', n') per channel (Ck = 3: colour, then alpha), with V = 1 (left only) when the kernel is
+    symmetric (:data:`SYMMETRY_TOL`; the right view is then the left one)."""
+    h = kernel.shape[-1] // 2
+    kv = kernel[..., h - support : h + support + 1, h - support : h + support + 1]
+    symmetric = float((kv - kv.flip(-1)).abs().max()) <= SYMMETRY_TOL * float(kv.abs().max())
+    views = [kv] if symmetric else [kv, kv.flip(-1)]
+    if kv.shape[0] == 1:
+        return torch.stack([v[0] for v in views])
+    return torch.stack([torch.cat([v, v], 0)[:channels] for v in views])
 
-    Small kernels (``spectra`` None) are applied by direct convolution inside the bounding box of ``hit``
-    (H, W bool, where the node has members) grown by the kernel's ``support``; large ones by FFT
-    (``spectra``: the left and right kernels' rfft2 on the (Hp, Wp) grid).
 
-    Returns:
-        {"l": (B, C, H, W), "r": (B, C, H, W)}.
-    """
-    B, C, H, W = sig.shape
-    if spectra is None:
-        rows = torch.nonzero(hit.any(1)).flatten()
-        cols = torch.nonzero(hit.any(0)).flatten()
-        y0, y1 = max(int(rows[0]) - support, 0), min(int(rows[-1]) + support + 1, H)
-        x0, x1 = max(int(cols[0]) - support, 0), min(int(cols[-1]) + support + 1, W)
-        h = kernel.shape[-1] // 2
-        k = kernel[..., h - support : h + support + 1, h - support : h + support + 1]  # (Ck, n', n')
-        ys0, xs0 = max(y0 - support, 0), max(x0 - support, 0)
-        ys1, xs1 = min(y1 + support, H), min(x1 + support, W)
-        src = F.pad(sig[..., ys0:ys1, xs0:xs1], (support - (x0 - xs0), support - (xs1 - x1), support - (y0 - ys0), support - (ys1 - y1)))
-        out = {}
-        for v, kv in (("l", k), ("r", k.flip(-1))):
-            w = kv.expand(C, -1, -1) if kv.shape[0] == 1 else torch.cat([kv, kv], 0)  # colour, then alpha
-            w = w.flip(-1, -2)[:, None]  # conv2d correlates: flip for a true convolution (light spreading)
-            res = sig.new_zeros(B, C, H, W)
-            res[..., y0:y1, x0:x1] = F.conv2d(src, w, groups=C)
-            out[v] = res
-        return out
-    sigp = F.pad(sig, (pad, Wp - W - pad, pad, Hp - H - pad))
-    fs = torch.fft.rfft2(sigp)
-    out = {}
-    for v, fk in zip(("l", "r"), spectra):
-        if C == 6:
-            kk = fk if fk.shape[0] == 3 else fk.expand(3, *fk.shape[1:])
-            prod = fs * torch.cat([kk, kk], dim=0)[None]
-        else:
-            prod = fs * fk[None]
-        out[v] = torch.fft.irfft2(prod, s=(Hp, Wp))[..., pad : pad + H, pad : pad + W]
-    return out
+def _occlude(trans: dict[str, Tensor], group: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]]) -> None:
+    """Multiply each view's transmittance by ``clip(1 - sum of the group's alphas, 0, 1)`` (in place), over the
+    union of the group's regions (``(y0, y1, x0, x1)`` each; the alphas are zero outside them)."""
+    uy0, uy1 = min(p[1][0] for p in group), max(p[1][1] for p in group)
+    ux0, ux1 = min(p[1][2] for p in group), max(p[1][3] for p in group)
+    for v, tr in trans.items():
+        total = tr.new_zeros(*tr.shape[:2], uy1 - uy0, ux1 - ux0)
+        for _, (y0, y1, x0, x1), alphas in group:
+            total[..., y0 - uy0 : y1 - uy0, x0 - ux0 : x1 - ux0] += alphas[v]
+        tr[..., uy0:uy1, ux0:ux1] *= (1.0 - total).clamp(0.0, 1.0)
