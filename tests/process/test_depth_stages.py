@@ -12,8 +12,8 @@ from dp5k_common.errors import BadInputError, StageError
 from dp5k_process.filters import close_holes, recursive_fill, statistical_outliers, valid_median
 from dp5k_process.focus import FocusConfig, focus_distance, huber_skip_mean
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
-from dp5k_process.triangulate import (code_view, depth_from_match, match_in_other, midpoint_triangulate,
-                                      normalised_rays)
+from dp5k_process.triangulate import (code_view, depth_from_match, match_in_other, midpoint_depth,
+                                      midpoint_triangulate, normalised_rays, undistort_px)
 from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection
 
 
@@ -189,3 +189,30 @@ def test_midpoint_triangulate_known_point_gap_and_behind():
     assert np.all(gap > 0.005) and np.all(gap <= 0.02 + 1e-9)
     behind = midpoint_triangulate(-X[:1] / X[:1, 2:], Xo[:1] / Xo[:1, 2:], R, T)[0]
     assert np.isnan(behind).all()
+
+
+def test_midpoint_depth_equals_midpoint_triangulate():
+    """The per-component depth path gives midpoint_triangulate's z and gap (skew rays, rays behind, 10^4 rays)."""
+    rng = np.random.default_rng(3)
+    R = cv2.Rodrigues(np.array([0.02, -0.1, 0.01]))[0]
+    T = np.array([-0.3, 0.01, 0.02])
+    n = 10_000
+    a = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), np.ones(n)])
+    X = a * rng.uniform(-1.0, 6.0, (n, 1))  # a tenth behind the reference camera
+    Xo = X @ R.T + T
+    b = Xo / Xo[:, 2:] + np.column_stack([rng.normal(0, 2e-3, (n, 2)), np.zeros(n)])  # rays that miss
+    pts, gap = midpoint_triangulate(a, b, R, T)
+    z, gap2 = midpoint_depth(a[:, 0], a[:, 1], b[:, 0], b[:, 1], R, T)
+    assert np.isnan(z).sum() > n // 20
+    np.testing.assert_array_equal(np.isnan(z), np.isnan(pts[:, 2]))
+    np.testing.assert_allclose(z, pts[:, 2], rtol=1e-12, atol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(gap2, gap, rtol=1e-9, atol=1e-12)
+
+
+def test_undistort_px_equals_opencv_with_and_without_distortion():
+    K = np.array([[3276.5, 0.0, 673.7], [0.0, 3270.0, 441.7], [0.0, 0.0, 1.0]])
+    px = np.random.default_rng(4).uniform([0, 0], [1344, 896], (5000, 2))
+    for dist in (np.zeros(5), np.array([-0.08, 0.05, 1e-3, -1e-3, 0.0])):
+        cam = CameraCalibration(K, dist, (1344, 896))
+        ref = cv2.undistortPoints(px.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+        np.testing.assert_allclose(undistort_px(px, cam), ref, rtol=0, atol=1e-12)
