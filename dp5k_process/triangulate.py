@@ -257,36 +257,35 @@ def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = Tr
         q, w = sample_centroids(coarse.centroids, coarse.from_full(ref.to_full(ref.u)),
                                 coarse.from_full(ref.to_full(ref.v)))
     ok = ref.valid & np.isfinite(ref.u) & np.isfinite(ref.v) & (w > 0) & np.isfinite(q[..., 0])
-    valid_o = np.where(np.isfinite(other.u) & np.isfinite(other.v), 1.0, 0.0).astype(np.float32)
-    uo, vo = np.nan_to_num(other.u), np.nan_to_num(other.v)
+    # the other camera's code u, v and its validity in one 3-channel image: one remap per step samples all three
+    # (each channel with the same bilinear weights as a remap of its own)
+    codes_o = np.dstack([np.nan_to_num(other.u), np.nan_to_num(other.v),
+                         (np.isfinite(other.u) & np.isfinite(other.v)).astype(np.float32)])
+    ur, vr = np.nan_to_num(ref.u), np.nan_to_num(ref.v)
     step_max = 2.0 * max(1.0, other.footprint_px, 0.0 if coarse is None else coarse.footprint_px)
-    res = np.full(ref.u.shape, np.inf, np.float32)
+    qx, qy = np.ascontiguousarray(q[..., 0]), np.ascontiguousarray(q[..., 1])
+    off = np.float32(-10)  # a map coordinate outside the image: samples 0 (invalid)
     for _ in range(max(1, cfg.newton_iters)):
-        qx = np.where(ok, q[..., 0], -10).astype(np.float32)
-        qy = np.where(ok, q[..., 1], -10).astype(np.float32)
-        m = _remap(valid_o, qx, qy)
-        cu = _remap(uo, qx, qy)
-        cv_ = _remap(vo, qx, qy)
-        gr = _remap(other.grads, qx, qy)
-        du = np.nan_to_num(ref.u) - cu
-        dv = np.nan_to_num(ref.v) - cv_
+        mx, my = np.where(ok, qx, off), np.where(ok, qy, off)
+        sampled = _remap(codes_o, mx, my)
+        gr = _remap(other.grads, mx, my)
+        du = ur - sampled[..., 0]
+        dv = vr - sampled[..., 1]
         a, b, c, d = gr[..., 0], gr[..., 1], gr[..., 2], gr[..., 3]
         det = a * d - b * c
-        good = ok & (m > 0.999) & (np.abs(det) > 1e-8)
+        good = ok & (sampled[..., 2] > 0.999) & (np.abs(det) > 1e-8)
         with np.errstate(invalid="ignore", divide="ignore"):
             sx = (d * du - b * dv) / det
             sy = (-c * du + a * dv) / det
         good &= (np.abs(sx) <= step_max) & (np.abs(sy) <= step_max)
-        q[..., 0] = np.where(good, q[..., 0] + sx, q[..., 0])
-        q[..., 1] = np.where(good, q[..., 1] + sy, q[..., 1])
-        res = np.where(good, np.hypot(du, dv), np.inf).astype(np.float32)
+        qx = np.where(good, qx + sx, qx)
+        qy = np.where(good, qy + sy, qy)
         ok = good
     # residual after the last step
-    qx = np.where(ok, q[..., 0], -10).astype(np.float32)
-    qy = np.where(ok, q[..., 1], -10).astype(np.float32)
-    m = _remap(valid_o, qx, qy)
-    res = np.hypot(np.nan_to_num(ref.u) - _remap(uo, qx, qy), np.nan_to_num(ref.v) - _remap(vo, qx, qy))
-    ok &= (m > 0.999) & (res <= cfg.max_code_residual)
+    sampled = _remap(codes_o, np.where(ok, qx, off), np.where(ok, qy, off))
+    res = np.hypot(ur - sampled[..., 0], vr - sampled[..., 1])
+    ok &= (sampled[..., 2] > 0.999) & (res <= cfg.max_code_residual)
+    q = np.stack([qx, qy], -1)
     q[~ok] = np.nan
     return q, ok
 
