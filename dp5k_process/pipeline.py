@@ -36,9 +36,9 @@ from .focus import FocusConfig, focus_distance
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
 from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
-from .refine import RefineConfig, refine_stereo
+from .refine import RefineConfig, ViewCache, cached_view, refine_stereo
 from .session import Session, check_size
-from .triangulate import (CodeView, TriangulationConfig, code_view, depth_from_match, match_in_other,
+from .triangulate import (CodeView, TriangulationConfig, depth_from_match, match_in_other,
                           normalised_rays)
 
 
@@ -194,7 +194,7 @@ def fill_steps_for(view0: CodeView, fill_steps: int, n_scales: int) -> int:
 
 def depth_for_camera(
     decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
-    views_cache: dict[tuple[str, int], CodeView] | None = None,
+    views_cache: ViewCache | None = None,
 ) -> tuple[NDArray[np.float32], dict[str, Any]]:
     """Depth (metres, NaN invalid) on ``ref``'s raw pixel grid: per scale match + triangulate + filter, then Eq. 3.
 
@@ -205,12 +205,10 @@ def depth_for_camera(
     views are computed once (a camera's views serve as reference for its own depth and as the other camera
     for its partner's); it holds up to (scales used + 1) views per camera, each about 40 bytes per raw pixel.
     """
-    cache: dict[tuple[str, int], CodeView] = {} if views_cache is None else views_cache
+    cache: ViewCache = {} if views_cache is None else views_cache
 
     def view(cam: str, s: int) -> CodeView:
-        if (cam, s) not in cache:
-            cache[(cam, s)] = code_view(*decs[cam].at_scale(s), decs[cam].scale_size(s), cfg.tri, s)
-        return cache[(cam, s)]
+        return cached_view(decs, cam, s, cfg.tri, cache)
 
     other = "cam1" if ref == "cam0" else "cam0"
     cal = {"cam0": st.cam0, "cam1": st.cam1}
@@ -331,7 +329,9 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
 
     # issue 20: the ChArUco extrinsics checked against the structured light, refined where they do not fit
     t0 = time.perf_counter()
-    st, cal_info["refinement"], warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene)
+    views_cache: ViewCache = {}  # each camera's code views, shared by the check and both depth passes
+    st, cal_info["refinement"], warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene,
+                                                         cache=views_cache)
     timings["refine_s"] = time.perf_counter() - t0
 
     report: dict[str, Any] = {"scene": session.scene, "manifest_scene": session.manifest.get("scene"),
@@ -339,7 +339,6 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
     pairs: list[Pair] = []
     depth_out: dict[str, NDArray[np.float32]] = {}
     timings["depth_s"] = timings["views_s"] = timings["pairs_s"] = 0.0
-    views_cache: dict[tuple[str, int], CodeView] = {}  # each camera's code views, shared by both depth passes
     cams = ("cam0", "cam1")
     for cam in cams:
         cs = session.cameras[cam]

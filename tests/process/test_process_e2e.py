@@ -15,6 +15,7 @@ from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
 from dp5k_process.graycode import GrayCodeConfig
 from dp5k_process.pipeline import ProcessConfig, calibrate_session, decode_camera, depth_for_camera, read_main
+from dp5k_process.refine import refine_stereo
 from dp5k_process.session import load_session
 from dp5k_process.validate import plane_error, validate_depth
 from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
@@ -216,8 +217,8 @@ def test_torchrun_ranks_process_each_scene_once_and_resume_their_share(processed
 
 
 def test_shared_code_views_give_the_same_depth(wall_session):
-    """process computes each camera's code views once for both depth passes; cam1's depth with the views cam0's
-    pass left in the cache equals cam1's depth computed alone."""
+    """process computes each camera's code views once for the extrinsics check and both depth passes; each
+    camera's depth with the views the earlier steps left in the cache equals its depth computed alone."""
     root, _ = wall_session
     session = load_session(root / "wall")
     cfg = ProcessConfig()
@@ -226,9 +227,10 @@ def test_shared_code_views_give_the_same_depth(wall_session):
     gcfg = cfg.gray or GrayCodeConfig.for_linear_raw(*session.projector_size)
     decs = {c: decode_camera(session, c, gcfg)[0] for c in ("cam0", "cam1")}
     cache: dict = {}
-    depth_for_camera(decs, "cam0", st, cfg, cache)
+    st, _, _ = refine_stereo(decs, st, cfg.tri, cfg.refine, cache=cache)
     assert {c for c, _ in cache} == {"cam0", "cam1"}
-    shared, _ = depth_for_camera(decs, "cam1", st, cfg, cache)
-    alone, _ = depth_for_camera(decs, "cam1", st, cfg)
-    assert np.isfinite(alone).mean() > 0.5
-    np.testing.assert_array_equal(shared, alone)
+    for cam in ("cam0", "cam1"):
+        shared, _ = depth_for_camera(decs, cam, st, cfg, cache)
+        alone, _ = depth_for_camera(decs, cam, st, cfg)
+        assert np.isfinite(alone).mean() > 0.5
+        np.testing.assert_array_equal(shared, alone)
