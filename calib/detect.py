@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -62,6 +63,26 @@ def _detector_params() -> cv2.aruco.DetectorParameters:
     return dp
 
 
+@lru_cache(maxsize=8)
+def _board_detector(board: BoardSpec) -> tuple[cv2.aruco.CharucoBoard, cv2.aruco.CharucoDetector]:
+    """The board and a detector whose dictionary holds only the board's markers (ids 0..n-1 of ``board``'s
+    predefined dictionary).
+
+    OpenCV identifies a marker candidate by scanning the dictionary in id order and taking the first id within
+    the correction distance, so a candidate gets the same id (and rotation) from the truncated dictionary as from
+    the full one whenever that id is on the board; candidates the full dictionary would name with an id off the
+    board are rejected instead, and ChArUco interpolation ignores those anyway. The scan, per candidate, is what
+    dominates detection with a 1000-marker dictionary (about 1.5 s of a 1344 x 896 image's 1.7 s); the board
+    uses 54 of them.
+    """
+    full = cv2.aruco.getPredefinedDictionary(board.dictionary)
+    n_markers = (board.squares_x * board.squares_y) // 2
+    own = cv2.aruco.Dictionary(np.ascontiguousarray(full.bytesList[:n_markers]), full.markerSize,
+                               full.maxCorrectionBits)
+    cv_board = cv2.aruco.CharucoBoard((board.squares_x, board.squares_y), board.square_m, board.marker_m, own)
+    return cv_board, cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(), _detector_params())
+
+
 def detect_charuco(image: NDArray, board: BoardSpec = DEFAULT_BOARD, upsample: int | None = None
                    ) -> CharucoDetection | None:
     """Detect the ChArUco board in ``image`` (gray or RGB, any dtype); None when no corner is found.
@@ -76,8 +97,7 @@ def detect_charuco(image: NDArray, board: BoardSpec = DEFAULT_BOARD, upsample: i
     up = upsample if upsample is not None else (2 if gray.shape[1] < 1000 else 1)
     if up > 1:
         gray = cv2.resize(gray, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
-    cv_board = board.cv_board()
-    det = cv2.aruco.CharucoDetector(cv_board, cv2.aruco.CharucoParameters(), _detector_params())
+    cv_board, det = _board_detector(board)
     cc, ci, mc, _mi = det.detectBoard(gray)
     if ci is None or cc is None or len(ci) == 0:
         return None

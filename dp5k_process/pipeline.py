@@ -36,9 +36,9 @@ from .focus import FocusConfig, focus_distance
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
 from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
-from .refine import RefineConfig, refine_stereo
+from .refine import RefineConfig, ViewCache, cached_view, refine_stereo
 from .session import Session, check_size
-from .triangulate import (CodeView, TriangulationConfig, code_view, depth_from_match, match_in_other,
+from .triangulate import (CodeView, TriangulationConfig, depth_from_match, match_in_other,
                           normalised_rays)
 
 
@@ -194,12 +194,22 @@ def fill_steps_for(view0: CodeView, fill_steps: int, n_scales: int) -> int:
 
 def depth_for_camera(
     decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
+    views_cache: ViewCache | None = None,
 ) -> tuple[NDArray[np.float32], dict[str, Any]]:
     """Depth (metres, NaN invalid) on ``ref``'s raw pixel grid: per scale match + triangulate + filter, then Eq. 3.
 
     Pixels the other camera cannot match (hidden from it by a nearer object, or outside its view) are
     triangulated against the projector, calibrated from this camera's stereo points (``cfg.projector``).
+
+    ``views_cache`` (camera, scale) -> code view: pass the same dict to both cameras' calls and each camera's
+    views are computed once (a camera's views serve as reference for its own depth and as the other camera
+    for its partner's); it holds up to (scales used + 1) views per camera, each about 40 bytes per raw pixel.
     """
+    cache: ViewCache = {} if views_cache is None else views_cache
+
+    def view(cam: str, s: int) -> CodeView:
+        return cached_view(decs, cam, s, cfg.tri, cache)
+
     other = "cam1" if ref == "cam0" else "cam0"
     cal = {"cam0": st.cam0, "cam1": st.cam1}
     if ref == "cam0":
@@ -210,15 +220,13 @@ def depth_for_camera(
     fx = float(cal[ref].K[0, 0])
     n_scales = decs[ref].cfg.n_scales
     coarsest = n_scales - 1
-    coarse_other = code_view(*decs[other].at_scale(coarsest), decs[other].scale_size(coarsest), cfg.tri, coarsest)
+    coarse_other = view(other, coarsest)
     info: dict[str, Any] = {"per_scale_coverage": [], "per_scale_coverage_stereo": []}
-    v0 = code_view(*decs[ref].at_scale(0), decs[ref].scale_size(0), cfg.tri, 0)
-    n_steps = fill_steps_for(v0, cfg.filt.fill_steps, n_scales)
+    n_steps = fill_steps_for(view(ref, 0), cfg.filt.fill_steps, n_scales)
     info["fill_scales"] = [f"1/{1 << s}" for s in range(n_steps)]
     views, stereo = [], []
     for s in range(n_steps):  # scales Eq. 3 does not reach are not computed
-        v_ref = v0 if s == 0 else code_view(*decs[ref].at_scale(s), decs[ref].scale_size(s), cfg.tri, s)
-        v_oth = coarse_other if s == coarsest else code_view(*decs[other].at_scale(s), decs[other].scale_size(s), cfg.tri, s)
+        v_ref, v_oth = view(ref, s), view(other, s)
         q, ok = match_in_other(v_ref, v_oth, cfg.tri, coarse=coarse_other)
         views.append(v_ref)
         stereo.append(depth_from_match(rays, fx, q, ok, cal[other], R, T, cfg.tri))
@@ -321,7 +329,9 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
 
     # issue 20: the ChArUco extrinsics checked against the structured light, refined where they do not fit
     t0 = time.perf_counter()
-    st, cal_info["refinement"], warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene)
+    views_cache: ViewCache = {}  # each camera's code views, shared by the check and both depth passes
+    st, cal_info["refinement"], warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=session.scene,
+                                                         cache=views_cache)
     timings["refine_s"] = time.perf_counter() - t0
 
     report: dict[str, Any] = {"scene": session.scene, "manifest_scene": session.manifest.get("scene"),
@@ -329,10 +339,13 @@ def process_scene(session: Session, cfg: ProcessConfig = ProcessConfig()) -> Sce
     pairs: list[Pair] = []
     depth_out: dict[str, NDArray[np.float32]] = {}
     timings["depth_s"] = timings["views_s"] = timings["pairs_s"] = 0.0
-    for cam in ("cam0", "cam1"):
+    cams = ("cam0", "cam1")
+    for cam in cams:
         cs = session.cameras[cam]
         t0 = time.perf_counter()
-        depth_raw, dinfo = depth_for_camera(decs, cam, st, cfg)
+        depth_raw, dinfo = depth_for_camera(decs, cam, st, cfg, views_cache)
+        if cam == cams[-1]:
+            views_cache.clear()  # both depth passes done
         depth_m = resize_depth(depth_raw, out_size)
         depth_out[cam] = depth_m
         timings["depth_s"] += time.perf_counter() - t0

@@ -50,6 +50,7 @@ from calib.calibrate import CameraCalibration, StereoCalibration, rotation_angle
 
 from .graycode import GrayDecode
 from .triangulate import (
+    CodeView,
     TriangulationConfig,
     code_view,
     depth_from_match,
@@ -58,6 +59,21 @@ from .triangulate import (
 )
 
 log = logging.getLogger(__name__)
+
+ViewCache = dict[tuple[str, int], CodeView]
+"""(camera, scale) -> that camera's code view at that scale, shared by the steps of one scene."""
+
+
+def cached_view(decs: dict[str, GrayDecode], cam: str, scale: int, tri: TriangulationConfig,
+                cache: ViewCache | None) -> CodeView:
+    """``cam``'s code view at ``scale``, taken from ``cache`` or computed and stored there (None: computed).
+
+    One cache must only ever see the same ``decs`` and ``tri``."""
+    if cache is None:
+        return code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
+    if (cam, scale) not in cache:
+        cache[(cam, scale)] = code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
+    return cache[(cam, scale)]
 
 
 @dataclass(frozen=True)
@@ -114,23 +130,21 @@ class Matches:
     n_pixels: int
 
 
-def probe_scale(dec: GrayDecode, tri: TriangulationConfig) -> int:
-    """The finest projector scale whose pixel spans at least one camera pixel (the coarsest if none)."""
+def probe_scale(decs: dict[str, GrayDecode], tri: TriangulationConfig, cache: ViewCache | None = None) -> int:
+    """The finest projector scale whose pixel spans at least one cam0 pixel (the coarsest if none)."""
     from .pipeline import camera_px_per_projector_px  # pipeline imports this module
 
-    col, row, valid = dec.at_scale(0)
-    fp = camera_px_per_projector_px(code_view(col, row, valid, dec.scale_size(0), tri, 0))
-    n = dec.cfg.n_scales
+    fp = camera_px_per_projector_px(cached_view(decs, "cam0", 0, tri, cache))
+    n = decs["cam0"].cfg.n_scales
     return next((s for s in range(n) if np.isfinite(fp) and fp * (1 << s) >= 1.0), n - 1)
 
 
-def sl_matches(decs: dict[str, GrayDecode], tri: TriangulationConfig, scale: int | None = None) -> Matches:
-    """Sub-pixel cam0 -> cam1 matches through the projector code (no calibration involved)."""
-    s = probe_scale(decs["cam0"], tri) if scale is None else scale
-    views = {}
-    for cam in ("cam0", "cam1"):
-        col, row, valid = decs[cam].at_scale(s)
-        views[cam] = code_view(col, row, valid, decs[cam].scale_size(s), tri, s)
+def sl_matches(decs: dict[str, GrayDecode], tri: TriangulationConfig, scale: int | None = None,
+               cache: ViewCache | None = None) -> Matches:
+    """Sub-pixel cam0 -> cam1 matches through the projector code (no calibration involved); code views from and
+    into ``cache`` (:func:`cached_view`)."""
+    s = probe_scale(decs, tri, cache) if scale is None else scale
+    views = {cam: cached_view(decs, cam, s, tri, cache) for cam in ("cam0", "cam1")}
     q, ok = match_in_other(views["cam0"], views["cam1"], tri)
     ys, xs = np.nonzero(ok)
     return Matches(np.column_stack([xs, ys]).astype(np.float64), q[ok].astype(np.float64), s, ok.size)
@@ -297,9 +311,11 @@ def _pose_json(R: NDArray[np.float64], T: NDArray[np.float64]) -> dict[str, Any]
 
 
 def refine_stereo(decs: dict[str, GrayDecode], st: StereoCalibration, tri: TriangulationConfig,
-                  cfg: RefineConfig | None = RefineConfig(), where: str = "") -> tuple[StereoCalibration, dict[str, Any], list[str]]:
+                  cfg: RefineConfig | None = RefineConfig(), where: str = "", cache: ViewCache | None = None
+                  ) -> tuple[StereoCalibration, dict[str, Any], list[str]]:
     """Check the ChArUco extrinsics against the structured-light matches; refine them when the ray-gap test rejects
-    most matches (module docstring).
+    most matches (module docstring). Code views come from and go into ``cache`` (:func:`cached_view`), for the
+    depth step to reuse.
 
     Returns:
         the calibration to triangulate with (the input, or a copy with refined R, T and its rectification),
@@ -307,7 +323,7 @@ def refine_stereo(decs: dict[str, GrayDecode], st: StereoCalibration, tri: Trian
     """
     if cfg is None:
         return st, {"enabled": False}, []
-    return check_and_refine(sl_matches(decs, tri), st, tri, cfg, where)
+    return check_and_refine(sl_matches(decs, tri, cache=cache), st, tri, cfg, where)
 
 
 def check_and_refine(m: Matches, st: StereoCalibration, tri: TriangulationConfig, cfg: RefineConfig = RefineConfig(),

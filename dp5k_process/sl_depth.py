@@ -49,7 +49,7 @@ from dp5k_common.io import (
 
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode, n_patterns
 from .pipeline import ProcessConfig, depth_for_camera
-from .refine import refine_stereo
+from .refine import ViewCache, refine_stereo
 
 log = logging.getLogger(__name__)
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
@@ -181,10 +181,11 @@ def sl_depth(images: Path, calibration: Path, out: Path, projector: tuple[int, i
     timings = {"decode_s": time.perf_counter() - t0}
     st = read_stereo_yaml(Path(calibration), units, (sizes["cam0"], sizes["cam1"]))
     t0 = time.perf_counter()
-    st, refinement, warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=str(images))
+    views_cache: ViewCache = {}  # code views shared by the check and the depth step
+    st, refinement, warnings = refine_stereo(decs, st, cfg.tri, cfg.refine, where=str(images), cache=views_cache)
     timings["refine_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    depth_m, info = depth_for_camera(decs, "cam0", st, cfg)
+    depth_m, info = depth_for_camera(decs, "cam0", st, cfg, views_cache)
     timings["depth_s"] = time.perf_counter() - t0
     valid = np.isfinite(depth_m)
     out.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ import pytest
 from calib.board import DEFAULT_BOARD, BoardSpec
 from calib.calibrate import (CalibConfig, CameraCalibration, StereoCalibration, calibrate_camera,
                              rectify_images, rotation_angle_deg, stereo_calibrate)
-from calib.detect import detect_charuco
+from calib.detect import _detector_params, _to_uint8, detect_charuco
 from dp5k_common.errors import CalibrationError
 from dp5k_testing.procam_synth import render_board, rot
 
@@ -109,3 +109,25 @@ def test_real_stereo_rectification_equals_reference():
         ref = cv2.imread(str(folder / f"{name}_cv_rectified_4.1.1.26.png"), cv2.IMREAD_GRAYSCALE)
         score = cv2.matchTemplate(ours, ref, cv2.TM_CCOEFF_NORMED)[0, 0]
         assert score > 0.995, name
+
+
+def _full_dictionary_detection(image: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray]:
+    """ChArUco corners (ids, px) found with the board's whole predefined dictionary: the detection before the
+    dictionary was cut to the board's own markers."""
+    det = cv2.aruco.CharucoDetector(spec.cv_board(), cv2.aruco.CharucoParameters(), _detector_params())
+    cc, ci, _mc, _mi = det.detectBoard(_to_uint8(image))
+    return np.asarray(ci).reshape(-1), np.asarray(cc, np.float32).reshape(-1, 2)
+
+
+def test_board_only_dictionary_detects_what_the_full_dictionary_does(pairs):
+    images = [(render_board(DEFAULT_BOARD, R, t, K, DIST, SIZE), DEFAULT_BOARD) for R, t in POSES]
+    folder = DATA / "opencv-charuco-photos"
+    if folder.is_dir():  # real photos: blur, noise and background candidates the renders lack
+        spec = BoardSpec(5, 7, 0.04, 0.02, cv2.aruco.DICT_6X6_250)
+        images += [(cv2.imread(str(folder / f"img_0{i}.jpg"), cv2.IMREAD_GRAYSCALE), spec) for i in range(4)]
+    for image, spec in images:
+        ids, px = _full_dictionary_detection(image, spec)
+        det = detect_charuco(image, spec, upsample=1)
+        assert det is not None and len(det) > 10
+        np.testing.assert_array_equal(det.ids, ids)
+        np.testing.assert_array_equal(det.image_px, px)

@@ -12,8 +12,9 @@ from dp5k_common.errors import BadInputError, StageError
 from dp5k_process.filters import close_holes, recursive_fill, statistical_outliers, valid_median
 from dp5k_process.focus import FocusConfig, focus_distance, huber_skip_mean
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
-from dp5k_process.triangulate import (code_view, depth_from_match, match_in_other, midpoint_triangulate,
-                                      normalised_rays)
+from dp5k_process.triangulate import (TriangulationConfig, code_view, depth_from_match, match_in_other,
+                                      midpoint_depth, midpoint_triangulate, normalised_rays, sample_centroids,
+                                      undistort_px)
 from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection
 
 
@@ -189,3 +190,76 @@ def test_midpoint_triangulate_known_point_gap_and_behind():
     assert np.all(gap > 0.005) and np.all(gap <= 0.02 + 1e-9)
     behind = midpoint_triangulate(-X[:1] / X[:1, 2:], Xo[:1] / Xo[:1, 2:], R, T)[0]
     assert np.isnan(behind).all()
+
+
+def test_midpoint_depth_equals_midpoint_triangulate():
+    """The per-component depth path gives midpoint_triangulate's z and gap (skew rays, rays behind, 10^4 rays)."""
+    rng = np.random.default_rng(3)
+    R = cv2.Rodrigues(np.array([0.02, -0.1, 0.01]))[0]
+    T = np.array([-0.3, 0.01, 0.02])
+    n = 10_000
+    a = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), np.ones(n)])
+    X = a * rng.uniform(-1.0, 6.0, (n, 1))  # a tenth behind the reference camera
+    Xo = X @ R.T + T
+    b = Xo / Xo[:, 2:] + np.column_stack([rng.normal(0, 2e-3, (n, 2)), np.zeros(n)])  # rays that miss
+    pts, gap = midpoint_triangulate(a, b, R, T)
+    z, gap2 = midpoint_depth(a[:, 0], a[:, 1], b[:, 0], b[:, 1], R, T)
+    assert np.isnan(z).sum() > n // 20
+    np.testing.assert_array_equal(np.isnan(z), np.isnan(pts[:, 2]))
+    np.testing.assert_allclose(z, pts[:, 2], rtol=1e-12, atol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(gap2, gap, rtol=1e-9, atol=1e-12)
+
+
+def test_undistort_px_equals_opencv_with_and_without_distortion():
+    K = np.array([[3276.5, 0.0, 673.7], [0.0, 3270.0, 441.7], [0.0, 0.0, 1.0]])
+    px = np.random.default_rng(4).uniform([0, 0], [1344, 896], (5000, 2))
+    for dist in (np.zeros(5), np.array([-0.08, 0.05, 1e-3, -1e-3, 0.0])):
+        cam = CameraCalibration(K, dist, (1344, 896))
+        ref = cv2.undistortPoints(px.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+        np.testing.assert_allclose(undistort_px(px, cam), ref, rtol=0, atol=1e-12)
+
+
+def _match_in_other_per_map(ref, other, cfg, coarse):
+    """match_in_other as it was before the code maps were sampled together: one cv2.remap per map."""
+    def remap(img, x, y):
+        return cv2.remap(img, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    q, w = sample_centroids(coarse.centroids, coarse.from_full(ref.to_full(ref.u)), coarse.from_full(ref.to_full(ref.v)))
+    ok = ref.valid & np.isfinite(ref.u) & np.isfinite(ref.v) & (w > 0) & np.isfinite(q[..., 0])
+    valid_o = np.where(np.isfinite(other.u) & np.isfinite(other.v), 1.0, 0.0).astype(np.float32)
+    uo, vo = np.nan_to_num(other.u), np.nan_to_num(other.v)
+    step_max = 2.0 * max(1.0, other.footprint_px, coarse.footprint_px)
+    for _ in range(cfg.newton_iters):
+        qx = np.where(ok, q[..., 0], -10).astype(np.float32)
+        qy = np.where(ok, q[..., 1], -10).astype(np.float32)
+        m, cu, cv_, gr = (remap(x, qx, qy) for x in (valid_o, uo, vo, other.grads))
+        du, dv = np.nan_to_num(ref.u) - cu, np.nan_to_num(ref.v) - cv_
+        a, b, c, d = gr[..., 0], gr[..., 1], gr[..., 2], gr[..., 3]
+        det = a * d - b * c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sx, sy = (d * du - b * dv) / det, (-c * du + a * dv) / det
+        good = ok & (m > 0.999) & (np.abs(det) > 1e-8) & (np.abs(sx) <= step_max) & (np.abs(sy) <= step_max)
+        q[..., 0] = np.where(good, q[..., 0] + sx, q[..., 0])
+        q[..., 1] = np.where(good, q[..., 1] + sy, q[..., 1])
+        ok = good
+    qx = np.where(ok, q[..., 0], -10).astype(np.float32)
+    qy = np.where(ok, q[..., 1], -10).astype(np.float32)
+    res = np.hypot(np.nan_to_num(ref.u) - remap(uo, qx, qy), np.nan_to_num(ref.v) - remap(vo, qx, qy))
+    ok &= (remap(valid_o, qx, qy) > 0.999) & (res <= cfg.max_code_residual)
+    q[~ok] = np.nan
+    return q, ok
+
+
+def test_match_in_other_equals_one_remap_per_map(plane_capture):
+    """Sampling the other camera's u, v and validity in one 3-channel remap gives the per-map result exactly."""
+    (_c0, d0, _z0), (_c1, d1, _z1) = plane_capture
+    cfg = TriangulationConfig()
+    coarse = code_view(*d1.at_scale(3), d1.scale_size(3), cfg, 3)
+    for s in (0, 2):
+        v0 = code_view(*d0.at_scale(s), d0.scale_size(s), cfg, s)
+        v1 = code_view(*d1.at_scale(s), d1.scale_size(s), cfg, s)
+        q, ok = match_in_other(v0, v1, cfg, coarse=coarse)
+        q_ref, ok_ref = _match_in_other_per_map(v0, v1, cfg, coarse)
+        assert ok.mean() > 0.5
+        np.testing.assert_array_equal(ok, ok_ref)
+        np.testing.assert_array_equal(q, q_ref)

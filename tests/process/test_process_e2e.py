@@ -13,7 +13,10 @@ import pytest
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
-from dp5k_process.pipeline import ProcessConfig
+from dp5k_process.graycode import GrayCodeConfig
+from dp5k_process.pipeline import ProcessConfig, calibrate_session, decode_camera, depth_for_camera, read_main
+from dp5k_process.refine import refine_stereo
+from dp5k_process.session import load_session
 from dp5k_process.validate import plane_error, validate_depth
 from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
 from dp5k_testing.truth import half, seen_by_both
@@ -211,3 +214,23 @@ def test_torchrun_ranks_process_each_scene_once_and_resume_their_share(processed
     assert res.returncode == 0 and "rank 1 of 2: processed 0 scene(s), skipped 1" in res.stdout, res.stdout + res.stderr
     res = subprocess.run([sys.executable, *cli], capture_output=True, text=True, timeout=600, env={**env, "RANK": "0"})
     assert res.returncode == 0 and "rank 0 of 2: processed 1 scene(s) (c), skipped 1" in res.stdout, res.stdout + res.stderr
+
+
+def test_shared_code_views_give_the_same_depth(wall_session):
+    """process computes each camera's code views once for the extrinsics check and both depth passes; each
+    camera's depth with the views the earlier steps left in the cache equals its depth computed alone."""
+    root, _ = wall_session
+    session = load_session(root / "wall")
+    cfg = ProcessConfig()
+    probe = read_main(session, session.cameras["cam0"].sl[-1])[0]
+    st, _ = calibrate_session(session, cfg, (probe.shape[1], probe.shape[0]))
+    gcfg = cfg.gray or GrayCodeConfig.for_linear_raw(*session.projector_size)
+    decs = {c: decode_camera(session, c, gcfg)[0] for c in ("cam0", "cam1")}
+    cache: dict = {}
+    st, _, _ = refine_stereo(decs, st, cfg.tri, cfg.refine, cache=cache)
+    assert {c for c, _ in cache} == {"cam0", "cam1"}
+    for cam in ("cam0", "cam1"):
+        shared, _ = depth_for_camera(decs, cam, st, cfg, cache)
+        alone, _ = depth_for_camera(decs, cam, st, cfg)
+        assert np.isfinite(alone).mean() > 0.5
+        np.testing.assert_array_equal(shared, alone)
