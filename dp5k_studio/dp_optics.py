@@ -604,10 +604,11 @@ def _composite(plan: DPPlan, img_pad: F32, hidden_pad: F32 | None, halves: tuple
     docstring) and crop the padding: ``{half: (H, W, 3)}``, each normalised by its accumulated coverage (a
     full-aperture PSF sums to 1)."""
     H, W = plan.shape
+    nT = 3 if plan.chroma else 1  # one transmittance (and coverage) for all colours unless their kernels differ
     acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    cov_acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    nT = 3 if plan.chroma else 1  # one transmittance for all colours unless their kernels differ
+    cov_acc = {h: np.zeros((H, W, nT), np.float32) for h in halves}
     T = {h: np.ones((H, W, nT), np.float32) for h in halves}
+    opaque_yet = {h: False for h in halves}  # until a group is committed T is 1 and need not multiply
     pending: dict[str, list] = {}
     for layer in plan.layers:
         c3 = layer.coc_px
@@ -621,10 +622,15 @@ def _composite(plan: DPPlan, img_pad: F32, hidden_pad: F32 | None, halves: tuple
             group = [p for p in waiting if _occludes(p[0], c_here)]
             if group:
                 _commit(T[hname], group)
+                opaque_yet[hname] = True
                 waiting = [p for p in waiting if not _occludes(p[0], c_here)]
-            Tv = T[hname][y0:y1, x0:x1]
-            acc[hname][y0:y1, x0:x1] += Tv * bc
-            cov_acc[hname][y0:y1, x0:x1] += Tv * ba
+            if opaque_yet[hname]:
+                Tv = T[hname][y0:y1, x0:x1]
+                acc[hname][y0:y1, x0:x1] += np.multiply(bc, Tv, out=bc)
+                cov_acc[hname][y0:y1, x0:x1] += Tv * ba
+            else:
+                acc[hname][y0:y1, x0:x1] += bc
+                cov_acc[hname][y0:y1, x0:x1] += ba
             waiting.append((c_here, y0, y1, x0, x1, ba))
             pending[hname] = waiting
     P = plan.pad
