@@ -21,6 +21,7 @@ from dp5k_common.errors import BadInputError
 from .dp_optics import DPPlan, DPRender, LensSetting, plan_dp
 from .effects import EffectSet, effect_parameters
 from .geometry import Quad, cast
+from .pattern_views import PatternViews
 from .render import ViewGeometry, pixel_rays, view_geometry
 from .rig import Rig
 from .scenes import Scene
@@ -113,6 +114,7 @@ class Studio:
         self._geom: dict[int, ViewGeometry] = {}
         self._rad: dict[int, NDArray[np.float32]] = {}
         self._plans: dict[int, tuple[tuple, DPPlan]] = {}
+        self._views: dict[int, PatternViews] = {}
 
     # ---------------------------------------------------------------- scene state
     def set_projector_image(self, image: NDArray[Any] | None) -> None:
@@ -140,6 +142,7 @@ class Studio:
         self._geom.clear()
         self._rad.clear()
         self._plans.clear()
+        self._views.clear()
 
     def _extra(self) -> tuple:
         return (self._board,) if self._board is not None else ()
@@ -196,8 +199,14 @@ class Studio:
         cam = self._camera(camera)
         plan = self.dp_plan(camera, f_number, focus_distance_m)
         geom = self.geometry(camera)
-        hidden = None if geom.hidden is None else geom.hidden_radiance(self._pattern)
-        out = plan.render(self.radiance(camera), hidden, full=full)
+        if full:
+            hidden = None if geom.hidden is None else geom.hidden_radiance(self._pattern)
+            out = plan.render(self.radiance(camera), hidden, full=True)
+        else:  # the projector images share the dark and full-light views (pattern_views.py)
+            if camera not in self._views or self._views[camera].plan is not plan:
+                self._views[camera] = PatternViews(plan, geom)
+            left, right = self._views[camera].views(self._pattern)
+            out = DPRender(left, right, None, plan.coc_px)
         sig = diffraction_sigma_px(f_number, cam.pixel_pitch_mm)
         if sig > 0.05:
             blur = lambda a: cv2.GaussianBlur(a, (0, 0), sig, borderType=cv2.BORDER_REFLECT)  # noqa: E731
