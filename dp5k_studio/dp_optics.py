@@ -453,9 +453,11 @@ class _LayerSplat:
     hidden_src: NDArray[np.int64]
     hidden_w: F32
     coc_px: NDArray[np.float64]
+    kernels: list[F32]
+    """The left PSF per colour at the layer's pyramid level (:func:`_pyramid_factor`)."""
 
 
-def _layer_splat(sources: _Sources, layers: _Layers, li: int) -> _LayerSplat:
+def _layer_splat(sources: _Sources, layers: _Layers, li: int, eff: EffectSet) -> _LayerSplat:
     """Layer ``li``'s members located in their box (see :class:`_LayerSplat`)."""
     H, W = sources.shape
     c3 = layers.coc_px[li]
@@ -472,7 +474,9 @@ def _layer_splat(sources: _Sources, layers: _Layers, li: int) -> _LayerSplat:
     x0, x1 = max(0, int(cc.min()) - margin_px), min(W, int(cc.max()) + 1 + margin_px)
     loc = (rr - y0) * (x1 - x0) + (cc - x0)
     nf = front_flat.size
-    return _LayerSplat((y0, y1, x0, x1), loc[:nf], wt[is_front], loc[nf:], hidden_flat, wt[~is_front], c3)
+    s = _pyramid_factor(float(np.max(np.abs(c3))) / 2.0)
+    kernels = [left_kernel(c3[ch] / s, eff) for ch in range(3)]
+    return _LayerSplat((y0, y1, x0, x1), loc[:nf], wt[is_front], loc[nf:], hidden_flat, wt[~is_front], c3, kernels)
 
 
 @dataclass
@@ -538,7 +542,7 @@ def plan_dp(depth_mm: NDArray[np.floating], lens: LensSetting, effects: EffectSe
     coc_out = coc_channels_px(z, lens, eff)
     sources = _sources(z, coc_out, lens, eff, hidden_depth_mm)
     layers = _layers(sources)
-    splats = [_layer_splat(sources, layers, int(li)) for li in np.argsort(layers.z_mm, kind="stable")]
+    splats = [_layer_splat(sources, layers, int(li), eff) for li in np.argsort(layers.z_mm, kind="stable")]
     chroma = effects is not None and eff.s("chromatic_defocus") > 0
     return DPPlan(lens, eff, coc_out, sources.pad, sources.shape, splats, hidden_depth_mm is not None, chroma)
 
@@ -558,10 +562,10 @@ def _splat(layer: _LayerSplat, img_pad: F32, hidden_pad: F32 | None) -> tuple[F3
     return alpha.reshape(h, w), color
 
 
-def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tuple[str, ...], eff: EffectSet,
+def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], kern: list[F32], halves: tuple[str, ...],
                 chroma: bool) -> dict[str, tuple[F32, F32]]:
     """Blur one layer's alpha (h, w) and colour (h, w, 3) with its left, right (hflip) and full (their mean)
-    PSFs, on a pyramid level for large blurs. Returns ``{half: (alpha (h, w, 1 or 3) clipped to [0, 1],
+    PSFs (``kern``: the left PSF per colour at the pyramid level), on a pyramid level for large blurs. Returns ``{half: (alpha (h, w, 1 or 3) clipped to [0, 1],
     colour (h, w, 3))}``; per-colour alphas only with ``chroma`` (kernels that differ per colour)."""
     h, w = alpha.shape
     s = _pyramid_factor(float(np.max(np.abs(coc3_px))) / 2.0)
@@ -574,7 +578,6 @@ def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tu
         alpha_l, color_l = _pyr_down(alpha_p, s), _pyr_down(color_p, s)
     else:
         alpha_l, color_l = alpha, color
-    kern = [left_kernel(coc3_px[ch] / s, eff) for ch in range(3)]
     out = {}
     for hname in halves:
         if hname == "L":
@@ -614,7 +617,7 @@ def _composite(plan: DPPlan, img_pad: F32, hidden_pad: F32 | None, halves: tuple
         c3 = layer.coc_px
         y0, y1, x0, x1 = layer.box
         alpha, color = _splat(layer, img_pad, hidden_pad)
-        for hname, (ba, bc) in _blur_layer(alpha, color, c3, halves, plan.effects, plan.chroma).items():
+        for hname, (ba, bc) in _blur_layer(alpha, color, c3, layer.kernels, halves, plan.chroma).items():
             # nearer layers whose blur is close to this one's are the same surface continued, not
             # occluders: they join the transmittance, as one group, once a layer clearly behind comes
             waiting = pending.setdefault(hname, [])
