@@ -27,10 +27,10 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import dp5k_studio.dp_optics as dp_optics
 import dp5k_studio.studio as studio_mod
 import dp5k_testing.sim_session as sim_session
 from dp5k_studio import LensSetting, make_dataset, make_rig, make_scene, render_dp
-from dp5k_studio.dp_optics import DPPlan
 from dp5k_studio.render import view_geometry
 
 F_NUMBERS = (1.8, 2.0, 2.8, 4.0, 5.6)
@@ -82,10 +82,12 @@ def bench_session(scale: str, scene: str) -> None:
     clock = StageClock()
     patches = [(studio_mod, "view_geometry", "ray casting (view_geometry)"),
                (studio_mod, "plan_dp", "DP plans (plan_dp)"),
-               (DPPlan, "render", "DP renders (DPPlan.render)"),
+               (getattr(dp_optics, "DPPlan", None), "render", "DP renders (DPPlan.render)"),
+               (studio_mod, "render_dp", "DP renders (render_dp, before the plan)"),
                (studio_mod, "expose_raw", "sensor (expose_raw)"),
                (sim_session, "write_dual_pixel_dng", "writing the DNG files (floor)"),
                (sim_session, "sha256_file", "writing the DNG files (floor)")]
+    patches = [p for p in patches if hasattr(p[0], p[1])]  # an older revision has fewer stages (the rest grows)
     saved = [(obj, attr, getattr(obj, attr)) for obj, attr, _ in patches]
     for obj, attr, name in patches:
         setattr(obj, attr, clock.wrap(name, getattr(obj, attr)))
