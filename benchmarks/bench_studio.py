@@ -77,8 +77,9 @@ class StageClock:
         return timed
 
 
-def bench_session(scale: str, scene: str) -> None:
-    """Part A: render and write one full session at ``scale``; print the stage table."""
+def bench_session(scale: str, scene: str, progress: bool = False) -> None:
+    """Part A: render and write one full session at ``scale``; print the stage table (and, with ``progress``,
+    the running CPU seconds per stage after every raw file)."""
     clock = StageClock()
     patches = [(studio_mod, "view_geometry", "ray casting (view_geometry)"),
                (studio_mod, "plan_dp", "DP plans (plan_dp)"),
@@ -91,10 +92,20 @@ def bench_session(scale: str, scene: str) -> None:
     saved = [(obj, attr, getattr(obj, attr)) for obj, attr, _ in patches]
     for obj, attr, name in patches:
         setattr(obj, attr, clock.wrap(name, getattr(obj, attr)))
-    print(f"\nA. full session, scene {scene}, scale {scale}: {stamp()}")
+    print(f"\nA. full session, scene {scene}, scale {scale}: {stamp()}", flush=True)
+    w0, c0 = time.perf_counter(), time.process_time()
+    if progress:  # one line per raw file written: a run cut short still tells what its frames cost
+        write = sim_session.write_dual_pixel_dng
+
+        def write_and_report(path, *args, **kwargs):
+            write(path, *args, **kwargs)
+            stages = ", ".join(f"{n.split(' (')[0]} {clock.cpu[n]:.0f}" for n in dict.fromkeys(x for _, _, x in patches))
+            print(f"  {Path(path).parent.name}/{Path(path).name}: {time.perf_counter() - w0:.0f} s wall, "
+                  f"{time.process_time() - c0:.0f} s CPU ({stages}), load {os.getloadavg()[0]:.1f}", flush=True)
+
+        sim_session.write_dual_pixel_dng = write_and_report
     try:
         with tempfile.TemporaryDirectory(prefix="bench-studio-") as tmp:
-            w0, c0 = time.perf_counter(), time.process_time()
             sim_session.write_session(Path(tmp), scene, scale=scale, f_numbers=F_NUMBERS)
             wall, cpu = time.perf_counter() - w0, time.process_time() - c0
             files = sorted(Path(tmp).rglob("*.dng"))
@@ -141,9 +152,10 @@ def main() -> None:
     ap.add_argument("--f-number", type=float, default=1.8)
     ap.add_argument("--supersample", type=int, default=1)
     ap.add_argument("--skip-dataset", action="store_true")
+    ap.add_argument("--progress", action="store_true", help="a line per raw file written (long paper-scale runs)")
     a = ap.parse_args()
     if a.session != "none":
-        bench_session(a.session, a.scene)
+        bench_session(a.session, a.scene, a.progress)
     if a.sizes != "none":
         print(f"\nB. one DP pair, scene {a.scene}, f/{a.f_number}, supersample {a.supersample}: {stamp()}")
         print(f"\n| size | Mpx | geometry s | DP pair s | wall s | CPU s | Mpx/s |\n|---|---|---|---|---|---|---|")
