@@ -257,10 +257,13 @@ def _layer_coc(k: NDArray[np.integer]) -> NDArray[np.float64]:
 def _bin_split(key: NDArray[np.floating]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """The lower of the two bins that bracket each signed CoC ``c`` and the weight of the upper one: a pixel's
     light goes ``1 - t`` to bin ``k`` and ``t`` to bin ``k + 1``, ``t = (c - c_k) / (c_{k+1} - c_k)``. Linear
-    in ``c``, so the blend's DP centroid (proportional to ``c`` for each disc) is exact."""
+    in ``c``, so the blend's DP centroid (proportional to ``c`` for each disc) is exact. The bin CoCs come from
+    a table over the few bins present (one power per bin, not per pixel)."""
     c = np.asarray(key, dtype=np.float64)
     k = np.floor(_layer_coord(c)).astype(np.int64)
-    c0, c1 = _layer_coc(k), _layer_coc(k + 1)
+    lo = int(k.min()) if k.size else 0
+    table = _layer_coc(np.arange(lo, (int(k.max()) if k.size else 0) + 2))
+    c0, c1 = table[k - lo], table[k - lo + 1]
     return k, np.clip((c - c0) / (c1 - c0), 0.0, 1.0)
 
 
@@ -286,12 +289,14 @@ def render_dp(
     view_effects: bool = True,
     hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None = None,
 ) -> DPRender:
-    """Render the two DP views of a sharp radiance image with depth.
+    """Render the two DP views of a sharp radiance image with depth: ``plan_dp(...).render(...)``.
 
     Steps: the effective CoC per colour (:func:`coc_channels_px`); the light sources on a grid padded by the
     largest blur radius (:func:`_sources`); their split into CoC layers (:func:`_layers`); each layer
     splatted, blurred per aperture half and composited front to back (:func:`_composite`); the per-view
-    effects (:func:`apply_view_effects`).
+    effects (:func:`apply_view_effects`). Everything up to the splat depends on depth and lens only
+    (:class:`DPPlan`); callers rendering many radiance images of one geometry (the studio's 92
+    structured-light frames) keep the plan and call :meth:`DPPlan.render` per image.
 
     Args:
         radiance: (H, W, 3) linear sharp (pinhole) image.
@@ -309,32 +314,21 @@ def render_dp(
     Returns:
         :class:`DPRender`.
     """
-    eff = effects or EffectSet()
-    img = np.ascontiguousarray(radiance, dtype=np.float32)
+    img = np.asarray(radiance)
     if img.ndim != 3 or img.shape[2] != 3:
         raise BadInputError(f"radiance must be (H, W, 3), got {img.shape}")
     if np.shape(depth_mm) != img.shape[:2]:
         raise BadInputError(f"depth shape {np.shape(depth_mm)} differs from image {img.shape[:2]}")
-    z = np.asarray(depth_mm, dtype=np.float64)
-    coc_out = coc_channels_px(z, lens, eff)
-    sources = _sources(img, z, coc_out, lens, eff, hidden)
-    halves = ("L", "R", "F") if full else ("L", "R")
-    chroma = effects is not None and eff.s("chromatic_defocus") > 0
-    out = _composite(sources, _layers(sources), halves, eff, chroma)
-    left, right = 0.5 * out["L"], 0.5 * out["R"]
-    if view_effects:
-        left, right = apply_view_effects(left, right, eff)
-    return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), coc_out)
+    plan = plan_dp(depth_mm, lens, effects, None if hidden is None else hidden[1])
+    return plan.render(img, None if hidden is None else hidden[0], full=full, view_effects=view_effects)
 
 
 @dataclass
 class _Sources:
     """The light sources of one render on the padded grid (``shape`` = (H, W) after padding by ``pad`` px):
     every visible pixel (source ``i < n_front`` is padded flat index ``i``), then the hidden surface's pixels
-    (source ``n_front + j`` is padded flat index ``hidden_flat[j]``, radiance ``hidden_img``)."""
+    (source ``n_front + j`` is padded flat index ``hidden_flat[j]``)."""
 
-    img: F32
-    hidden_img: F32 | None
     hidden_flat: NDArray[np.int64] | None
     z_mm: NDArray[np.float64]
     """(n,) depth used to order layers front to back (unknown depth sorts at the focus distance)."""
@@ -345,8 +339,19 @@ class _Sources:
     shape: tuple[int, int]
 
 
-def _sources(img: F32, z: NDArray[np.float64], coc_out: F32, lens: LensSetting, eff: EffectSet,
-             hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None) -> _Sources:
+def _pad_px(coc_out: F32) -> int:
+    """The scene's mirror extension (px): the largest blur radius + 2 px, at most the image size - 1."""
+    H0, W0 = coc_out.shape[:2]
+    return min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H0 - 1, W0 - 1)
+
+
+def _pad2(a: NDArray, P: int) -> NDArray:
+    """Mirror-extend the first two axes by ``P`` px (``np.pad`` mode ``symmetric``)."""
+    return np.pad(a, ((P, P), (P, P)) + ((0, 0),) * (a.ndim - 2), mode="symmetric")
+
+
+def _sources(z: NDArray[np.float64], coc_out: F32, lens: LensSetting, eff: EffectSet,
+             hidden_depth_mm: NDArray[np.floating] | None) -> _Sources:
     """Pad the scene by the largest blur radius + 2 px and list its light sources.
 
     The camera sees beyond the frame: the scene is extended by mirroring (so the border is not dark and
@@ -354,24 +359,19 @@ def _sources(img: F32, z: NDArray[np.float64], coc_out: F32, lens: LensSetting, 
     it lies clearly behind the visible one (:func:`_occludes`' margins) and within the visible surface's blur
     radius (+ 2 px) of a depth edge, the only place a partly open aperture can see it.
     """
-    H0, W0 = img.shape[:2]
-    P = min(int(math.ceil(float(np.abs(coc_out).max()) / 2.0)) + 2, H0 - 1, W0 - 1)
-
-    def pad2(a: NDArray) -> NDArray:
-        return np.pad(a, ((P, P), (P, P)) + ((0, 0),) * (a.ndim - 2), mode="symmetric")
-
-    img, z, coc = pad2(img), pad2(z), pad2(coc_out)
-    H, W = img.shape[:2]
+    H0, W0 = coc_out.shape[:2]
+    P = _pad_px(coc_out)
+    z, coc = _pad2(z, P), _pad2(coc_out, P)
+    H, W = z.shape
     zsort = np.where(np.isfinite(z) & (z > 0), z, lens.focus_distance_mm)
     src_z, src_c = zsort.ravel(), coc.reshape(-1, 3)
-    if hidden is None:
-        return _Sources(img, None, None, src_z, src_c, H * W, P, (H, W))
-    h_rad, h_depth = hidden
-    if np.shape(h_rad) != (H0, W0, 3) or np.shape(h_depth) != (H0, W0):
+    if hidden_depth_mm is None:
+        return _Sources(None, src_z, src_c, H * W, P, (H, W))
+    if np.shape(hidden_depth_mm) != (H0, W0):
         raise BadInputError("hidden radiance/depth must match the image's shape")
-    hz = pad2(np.asarray(h_depth, dtype=np.float64))
+    hz = _pad2(np.asarray(hidden_depth_mm, dtype=np.float64), P)
     ok = np.isfinite(hz) & (hz > 0)
-    h_coc = pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff))
+    h_coc = _pad2(coc_channels_px(np.where(ok[P:H - P, P:W - P], hz[P:H - P, P:W - P], np.nan), lens, eff), P)
     cf, chd = coc[:, :, 1], h_coc[:, :, 1]
     ok &= (hz > zsort) & ((chd - cf) > np.maximum(OCCLUDE_MIN_PX, OCCLUDE_REL * np.maximum(np.abs(cf), np.abs(chd))))
     jump = np.zeros(cf.shape, bool)
@@ -384,9 +384,8 @@ def _sources(img: F32, z: NDArray[np.float64], coc_out: F32, lens: LensSetting, 
     dist = cv2.distanceTransform((~jump).astype(np.uint8), cv2.DIST_L2, 3)
     ok &= dist <= np.abs(cf) / 2.0 + 2.0
     h_flat = np.nonzero(ok.ravel())[0]
-    return _Sources(img, pad2(np.asarray(h_rad, dtype=np.float32)), h_flat,
-                    np.concatenate([src_z, hz.ravel()[h_flat]]), np.concatenate([src_c, h_coc.reshape(-1, 3)[h_flat]]),
-                    H * W, P, (H, W))
+    return _Sources(h_flat, np.concatenate([src_z, hz.ravel()[h_flat]]),
+                    np.concatenate([src_c, h_coc.reshape(-1, 3)[h_flat]]), H * W, P, (H, W))
 
 
 @dataclass
@@ -440,39 +439,133 @@ def _pyramid_factor(radius_px: float) -> int:
     return s
 
 
-def _splat_layer(sources: _Sources, layers: _Layers, li: int, margin_px: int) -> tuple[tuple[int, int, int, int], F32, F32]:
-    """Layer ``li``'s premultiplied light on its bounding box grown by ``margin_px``:
-    ``((y0, y1, x0, x1), alpha (h, w), colour (h, w, 3))``."""
+@dataclass
+class _LayerSplat:
+    """Where one CoC layer's light sits: its box ``(y0, y1, x0, x1)`` on the padded grid (the members' bounding
+    box grown by the blur radius + 3 px), the visible pixels' flat index inside the box (``front_loc``) and
+    share of their light (``front_w``), the hidden surface's pixels likewise (``hidden_loc``, ``hidden_w``,
+    ``hidden_src`` their flat index on the padded grid), and the layer's signed CoC per colour (px)."""
+
+    box: tuple[int, int, int, int]
+    front_loc: NDArray[np.int64]
+    front_w: F32
+    hidden_loc: NDArray[np.int64]
+    hidden_src: NDArray[np.int64]
+    hidden_w: F32
+    coc_px: NDArray[np.float64]
+    kernels: list[F32]
+    """The left PSF per colour at the layer's pyramid level (:func:`_pyramid_factor`)."""
+
+
+def _layer_splat(sources: _Sources, layers: _Layers, li: int, eff: EffectSet) -> _LayerSplat:
+    """Layer ``li``'s members located in their box (see :class:`_LayerSplat`)."""
     H, W = sources.shape
+    c3 = layers.coc_px[li]
+    margin_px = int(math.ceil(float(np.max(np.abs(c3))) / 2.0)) + 3
     members = layers.order[layers.starts[li] : layers.starts[li + 1]]
     src = layers.src[members]
     wt = layers.weight[members].astype(np.float32)
     is_front = src < sources.n_front
-    front_flat, w_front = src[is_front], wt[is_front]
+    front_flat = src[is_front]
     hidden_flat = sources.hidden_flat[src[~is_front] - sources.n_front] if sources.hidden_flat is not None else src[:0]
-    w_hidden = wt[~is_front]
     flat_all = np.concatenate([front_flat, hidden_flat])
     rr, cc = flat_all // W, flat_all % W
     y0, y1 = max(0, int(rr.min()) - margin_px), min(H, int(rr.max()) + 1 + margin_px)
     x0, x1 = max(0, int(cc.min()) - margin_px), min(W, int(cc.max()) + 1 + margin_px)
+    loc = (rr - y0) * (x1 - x0) + (cc - x0)
+    nf = front_flat.size
+    s = _pyramid_factor(float(np.max(np.abs(c3))) / 2.0)
+    kernels = [left_kernel(c3[ch] / s, eff) for ch in range(3)]
+    return _LayerSplat((y0, y1, x0, x1), loc[:nf], wt[is_front], loc[nf:], hidden_flat, wt[~is_front], c3, kernels)
+
+
+@dataclass
+class DPPlan:
+    """The depth-dependent part of a DP render (:func:`plan_dp`): the padded grid, the CoC layers front to
+    back with their members, and the effective CoC. :meth:`render` forms the views of any radiance image of
+    this depth map; the result equals :func:`render_dp` on the same inputs.
+
+    Attributes:
+        lens, effects: the optics it was planned for.
+        coc_px: (H, W, 3) float32 effective signed CoC (px).
+        pad: mirror extension (px); ``shape`` the padded (H, W).
+        layers: :class:`_LayerSplat` per CoC layer, nearest first.
+        has_hidden: whether a hidden surface takes part (then :meth:`render` needs its radiance).
+        chroma: per-colour kernels (chromatic_defocus).
+    """
+
+    lens: LensSetting
+    effects: EffectSet
+    coc_px: F32
+    pad: int
+    shape: tuple[int, int]
+    layers: list[_LayerSplat]
+    has_hidden: bool
+    chroma: bool
+
+    def render(self, radiance: NDArray[np.floating], hidden_radiance: NDArray[np.floating] | None = None, *,
+               full: bool = False, view_effects: bool = True) -> DPRender:
+        """The DP views of ``radiance`` (H, W, 3) linear (and of the hidden surface's radiance (H, W, 3) when
+        the plan has one); ``full`` and ``view_effects`` as in :func:`render_dp`."""
+        img = np.ascontiguousarray(radiance, dtype=np.float32)
+        H0, W0 = self.coc_px.shape[:2]
+        if img.shape != (H0, W0, 3):
+            raise BadInputError(f"radiance must be ({H0}, {W0}, 3) like the planned depth, got {img.shape}")
+        hid = None
+        if self.has_hidden:
+            if hidden_radiance is None or np.shape(hidden_radiance) != (H0, W0, 3):
+                raise BadInputError("hidden radiance/depth must match the image's shape")
+            hid = _pad2(np.asarray(hidden_radiance, dtype=np.float32), self.pad).reshape(-1, 3)
+        halves = ("L", "R", "F") if full else ("L", "R")
+        out = _composite(self, _pad2(img, self.pad), hid, halves)
+        left, right = 0.5 * out["L"], 0.5 * out["R"]
+        if view_effects:
+            left, right = apply_view_effects(left, right, self.effects)
+        return DPRender(left.astype(np.float32), right.astype(np.float32), out.get("F"), self.coc_px)
+
+
+def plan_dp(depth_mm: NDArray[np.floating], lens: LensSetting, effects: EffectSet | None = None,
+            hidden_depth_mm: NDArray[np.floating] | None = None) -> DPPlan:
+    """Plan the DP render of a depth map (:class:`DPPlan`): everything of :func:`render_dp` that does not
+    depend on the radiance.
+
+    Args:
+        depth_mm: (H, W) z-depth in mm (<= 0 / non-finite = unknown: kept in focus).
+        lens: optics (``focus_distance_mm`` the true focus).
+        effects: planted effects (see :func:`render_dp`).
+        hidden_depth_mm: (H, W) depth of the surface behind the visible one (mm; inf/0 = none), or None.
+    """
+    eff = effects or EffectSet()
+    z = np.asarray(depth_mm, dtype=np.float64)
+    if z.ndim != 2:
+        raise BadInputError(f"depth must be (H, W), got {z.shape}")
+    coc_out = coc_channels_px(z, lens, eff)
+    sources = _sources(z, coc_out, lens, eff, hidden_depth_mm)
+    layers = _layers(sources)
+    splats = [_layer_splat(sources, layers, int(li), eff) for li in np.argsort(layers.z_mm, kind="stable")]
+    chroma = effects is not None and eff.s("chromatic_defocus") > 0
+    return DPPlan(lens, eff, coc_out, sources.pad, sources.shape, splats, hidden_depth_mm is not None, chroma)
+
+
+def _splat(layer: _LayerSplat, img_pad: F32, hidden_pad: F32 | None) -> tuple[F32, F32]:
+    """One radiance image's light in a layer's box: alpha (h, w) and premultiplied colour (h, w, 3).
+    ``img_pad`` (H, W, 3) is the padded radiance, ``hidden_pad`` (H * W, 3) the padded hidden radiance."""
+    y0, y1, x0, x1 = layer.box
     h, w = y1 - y0, x1 - x0
-    alpha = np.zeros((h, w), np.float32)
-    color = np.zeros((h, w, 3), np.float32)
-    fr, fc = front_flat // W - y0, front_flat % W - x0
-    alpha[fr, fc] = w_front
-    color[fr, fc] = w_front[:, None] * sources.img[front_flat // W, front_flat % W]
-    if hidden_flat.size:  # a hidden surface is >= 2 px of CoC behind the front one: never in its bins
-        assert sources.hidden_img is not None
-        hr, hc = hidden_flat // W - y0, hidden_flat % W - x0
-        alpha[hr, hc] = w_hidden
-        color[hr, hc] = w_hidden[:, None] * sources.hidden_img[hidden_flat // W, hidden_flat % W]
-    return (y0, y1, x0, x1), alpha, color
+    alpha = np.zeros(h * w, np.float32)
+    alpha[layer.front_loc] = layer.front_w
+    color = alpha.reshape(h, w, 1) * img_pad[y0:y1, x0:x1]
+    if layer.hidden_loc.size:  # a hidden surface is >= 2 px of CoC behind the front one: never in its bins
+        assert hidden_pad is not None
+        color.reshape(-1, 3)[layer.hidden_loc] = layer.hidden_w[:, None] * hidden_pad[layer.hidden_src]
+        alpha[layer.hidden_loc] = layer.hidden_w
+    return alpha.reshape(h, w), color
 
 
-def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tuple[str, ...], eff: EffectSet,
+def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], kern: list[F32], halves: tuple[str, ...],
                 chroma: bool) -> dict[str, tuple[F32, F32]]:
     """Blur one layer's alpha (h, w) and colour (h, w, 3) with its left, right (hflip) and full (their mean)
-    PSFs, on a pyramid level for large blurs. Returns ``{half: (alpha (h, w, 1 or 3) clipped to [0, 1],
+    PSFs (``kern``: the left PSF per colour at the pyramid level), on a pyramid level for large blurs. Returns ``{half: (alpha (h, w, 1 or 3) clipped to [0, 1],
     colour (h, w, 3))}``; per-colour alphas only with ``chroma`` (kernels that differ per colour)."""
     h, w = alpha.shape
     s = _pyramid_factor(float(np.max(np.abs(coc3_px))) / 2.0)
@@ -485,7 +578,6 @@ def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tu
         alpha_l, color_l = _pyr_down(alpha_p, s), _pyr_down(color_p, s)
     else:
         alpha_l, color_l = alpha, color
-    kern = [left_kernel(coc3_px[ch] / s, eff) for ch in range(3)]
     out = {}
     for hname in halves:
         if hname == "L":
@@ -510,19 +602,22 @@ def _blur_layer(alpha: F32, color: F32, coc3_px: NDArray[np.float64], halves: tu
     return out
 
 
-def _composite(sources: _Sources, layers: _Layers, halves: tuple[str, ...], eff: EffectSet, chroma: bool) -> dict[str, F32]:
-    """Composite the layers front to back per aperture half (module docstring) and crop the padding:
-    ``{half: (H, W, 3)}``, each normalised by its accumulated coverage (a full-aperture PSF sums to 1)."""
-    H, W = sources.shape
+def _composite(plan: DPPlan, img_pad: F32, hidden_pad: F32 | None, halves: tuple[str, ...]) -> dict[str, F32]:
+    """Composite the plan's layers of one padded radiance image front to back per aperture half (module
+    docstring) and crop the padding: ``{half: (H, W, 3)}``, each normalised by its accumulated coverage (a
+    full-aperture PSF sums to 1)."""
+    H, W = plan.shape
+    nT = 3 if plan.chroma else 1  # one transmittance (and coverage) for all colours unless their kernels differ
     acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    cov_acc = {h: np.zeros((H, W, 3), np.float32) for h in halves}
-    nT = 3 if chroma else 1  # one transmittance for all colours unless their kernels differ
+    cov_acc = {h: np.zeros((H, W, nT), np.float32) for h in halves}
     T = {h: np.ones((H, W, nT), np.float32) for h in halves}
+    opaque_yet = {h: False for h in halves}  # until a group is committed T is 1 and need not multiply
     pending: dict[str, list] = {}
-    for li in np.argsort(layers.z_mm, kind="stable"):
-        c3 = layers.coc_px[li]
-        (y0, y1, x0, x1), alpha, color = _splat_layer(sources, layers, li, int(math.ceil(float(np.max(np.abs(c3))) / 2.0)) + 3)
-        for hname, (ba, bc) in _blur_layer(alpha, color, c3, halves, eff, chroma).items():
+    for layer in plan.layers:
+        c3 = layer.coc_px
+        y0, y1, x0, x1 = layer.box
+        alpha, color = _splat(layer, img_pad, hidden_pad)
+        for hname, (ba, bc) in _blur_layer(alpha, color, c3, layer.kernels, halves, plan.chroma).items():
             # nearer layers whose blur is close to this one's are the same surface continued, not
             # occluders: they join the transmittance, as one group, once a layer clearly behind comes
             waiting = pending.setdefault(hname, [])
@@ -530,13 +625,18 @@ def _composite(sources: _Sources, layers: _Layers, halves: tuple[str, ...], eff:
             group = [p for p in waiting if _occludes(p[0], c_here)]
             if group:
                 _commit(T[hname], group)
+                opaque_yet[hname] = True
                 waiting = [p for p in waiting if not _occludes(p[0], c_here)]
-            Tv = T[hname][y0:y1, x0:x1]
-            acc[hname][y0:y1, x0:x1] += Tv * bc
-            cov_acc[hname][y0:y1, x0:x1] += Tv * ba
+            if opaque_yet[hname]:
+                Tv = T[hname][y0:y1, x0:x1]
+                acc[hname][y0:y1, x0:x1] += np.multiply(bc, Tv, out=bc)
+                cov_acc[hname][y0:y1, x0:x1] += Tv * ba
+            else:
+                acc[hname][y0:y1, x0:x1] += bc
+                cov_acc[hname][y0:y1, x0:x1] += ba
             waiting.append((c_here, y0, y1, x0, x1, ba))
             pending[hname] = waiting
-    P = sources.pad
+    P = plan.pad
     crop = (slice(P, H - P), slice(P, W - P))
     return {hname: acc[hname][crop] / np.maximum(cov_acc[hname][crop], 1e-6) for hname in halves}
 

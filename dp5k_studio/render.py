@@ -16,6 +16,7 @@ Depth is z along the camera axis (metres) at pixel centres.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,29 +56,46 @@ class ViewGeometry:
     prim: NDArray[np.int32]
     hidden: dict | None = None
 
+    @cached_property
+    def _lit(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float32]]:
+        """Rays the projector lights: their index, their projector pixel (flat) and gain (n, 1)."""
+        lit = np.flatnonzero(self.proj_index >= 0)
+        return lit, self.proj_index[lit], self.proj_gain[lit][:, None]
+
+    @cached_property
+    def _hidden_lit(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float32]]:
+        """:attr:`_lit` of the hidden surfaces."""
+        assert self.hidden is not None
+        lit = np.flatnonzero(self.hidden["proj_index"] >= 0)
+        return lit, self.hidden["proj_index"][lit], self.hidden["proj_gain"][lit][:, None]
+
     def hidden_radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32] | None:
         """(H, W, 3) radiance of the hidden surfaces under a projector image (None if not computed)."""
         if self.hidden is None:
             return None
         h = self.hidden
-        light = np.repeat(h["base_light"][:, None], 3, axis=1)
-        if pattern is not None:
-            m = h["proj_index"] >= 0
-            pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
-            light[m] += pat[h["proj_index"][m]] * h["proj_gain"][m][:, None]
+        light = _lighting(h["base_light"], pattern, *self._hidden_lit)
         return (h["albedo"] * light).reshape(self.height, self.width, 3).astype(np.float32)
 
     def radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32]:
         """(H, W, 3) float32 radiance under a projector image ((Hp, Wp[, 3]) in [0, 1]) or None (dark)."""
-        light = np.repeat(self.base_light[:, None], 3, axis=1)
-        if pattern is not None:
-            m = self.proj_index >= 0
-            pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
-            val = pat[self.proj_index[m]]
-            light[m] += val * self.proj_gain[m][:, None]
-        rad = self.albedo * light
+        rad = self.albedo * _lighting(self.base_light, pattern, *self._lit)
         s = self.ss
+        if s == 1:
+            return rad.reshape(self.height, self.width, 3)
         return rad.reshape(self.height, s, self.width, s, 3).mean(axis=(1, 3), dtype=np.float32)
+
+
+def _lighting(base_light: NDArray[np.float32], pattern: NDArray[np.float32] | None, lit: NDArray[np.int64],
+              proj_pixel: NDArray[np.int64], gain: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Irradiance per ray, (N, 1) for a grey (or no) projector image, (N, 3) for a colour one: the studio
+    light plus the pattern at each lit ray's projector pixel times its gain."""
+    if pattern is None:
+        return base_light[:, None]
+    pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
+    light = np.repeat(base_light[:, None], pat.shape[1], axis=1)
+    light[lit] += pat[proj_pixel] * gain
+    return light
 
 
 def pixel_rays(cam: CameraModel, xs: NDArray[np.float64], ys: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

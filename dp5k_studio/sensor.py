@@ -91,11 +91,18 @@ def bayer_channel_index(H: int, W: int) -> NDArray[np.int8]:
     return np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1)).astype(np.int8)
 
 
-def mosaic(rgb: NDArray[np.floating]) -> NDArray[np.float64]:
-    """(H, W, 3) -> (H, W) RGGB mosaic (each site keeps its own channel)."""
-    H, W = rgb.shape[:2]
-    ch = bayer_channel_index(H, W)
-    return np.take_along_axis(np.asarray(rgb, dtype=np.float64), ch[:, :, None].astype(np.int64), axis=2)[:, :, 0]
+RGGB_SITES = ((0, 0, 0), (0, 1, 1), (1, 0, 1), (1, 1, 2))
+"""(row parity, column parity, channel) of the four sites of the RGGB tile (:func:`bayer_channel_index`)."""
+
+
+def mosaic(rgb: NDArray[np.floating], channel_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> NDArray[np.float64]:
+    """(H, W, 3) -> (H, W) float64 RGGB mosaic: each site keeps its own channel, times that channel's gain
+    (``mosaic(rgb * gain)`` with a quarter of the multiplications)."""
+    a = np.asarray(rgb)
+    out = np.empty(a.shape[:2], np.float64)
+    for dy, dx, ch in RGGB_SITES:
+        out[dy::2, dx::2] = a[dy::2, dx::2, ch].astype(np.float64) * float(channel_gain[ch])
+    return out
 
 
 def expose_raw(
@@ -124,13 +131,12 @@ def expose_raw(
     """
     if not (f_number > 0 and shutter_s > 0):
         raise BadInputError(f"need f-number > 0 and shutter > 0 s, got N={f_number}, t={shutter_s}")
-    qe = np.asarray(sensor.qe_rgb)
     scale = sensor.q_e_per_s * shutter_s / (f_number**2)
     g = sensor.gain_e_per_dn(iso)
     sig = sensor.read_sigma_dn(iso) * read_sigma_factor
     elec = []
     for view in (left_rgb, right_rgb):
-        lam = np.maximum(mosaic(np.asarray(view) * qe[None, None, :]) * scale, 0.0)
+        lam = np.maximum(mosaic(view, sensor.qe_rgb) * scale, 0.0)
         k = float(shot_var_factor)
         e = rng.poisson(lam / k).astype(np.float64) * k if k != 1.0 else rng.poisson(lam).astype(np.float64)
         elec.append(e)

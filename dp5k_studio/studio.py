@@ -18,9 +18,10 @@ from numpy.typing import NDArray
 from calib.board import DEFAULT_BOARD, BoardSpec
 from dp5k_common.errors import BadInputError
 
-from .dp_optics import DPRender, LensSetting, render_dp
+from .dp_optics import DPPlan, DPRender, LensSetting, plan_dp
 from .effects import EffectSet, effect_parameters
 from .geometry import Quad, cast
+from .pattern_views import PatternViews
 from .render import ViewGeometry, pixel_rays, view_geometry
 from .rig import Rig
 from .scenes import Scene
@@ -112,6 +113,8 @@ class Studio:
         self._board_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._geom: dict[int, ViewGeometry] = {}
         self._rad: dict[int, NDArray[np.float32]] = {}
+        self._plans: dict[int, tuple[tuple, DPPlan]] = {}
+        self._views: dict[int, PatternViews] = {}
 
     # ---------------------------------------------------------------- scene state
     def set_projector_image(self, image: NDArray[Any] | None) -> None:
@@ -138,6 +141,8 @@ class Studio:
             self._board_pose = (R, t)
         self._geom.clear()
         self._rad.clear()
+        self._plans.clear()
+        self._views.clear()
 
     def _extra(self) -> tuple:
         return (self._board,) if self._board is not None else ()
@@ -174,15 +179,34 @@ class Studio:
             return EffectSet({k: v for k, v in self.effects.strengths.items() if k != "misregistration"})
         return self.effects
 
+    def dp_plan(self, camera: int, f_number: float, focus_distance_m: float) -> DPPlan:
+        """The depth-dependent part of ``camera``'s DP render at this aperture and recorded focus (cached: the
+        last plan per camera is kept until the geometry changes, so the 92 structured-light frames, the f/22
+        sharp frame and every pattern share one plan)."""
+        cam = self._camera(camera)
+        lens = LensSetting(cam.focal_length_mm, float(f_number), self.true_focus_mm(focus_distance_m), cam.pixel_pitch_mm)
+        effects = self.effects_at(f_number)
+        key = (lens, tuple(sorted(effects.strengths.items())))
+        cached = self._plans.get(camera)
+        if cached is None or cached[0] != key:
+            geom = self.geometry(camera)
+            hidden_mm = None if geom.hidden is None else geom.hidden["depth_m"] * 1000.0
+            self._plans[camera] = (key, plan_dp(geom.depth_m * 1000.0, lens, effects, hidden_mm))
+        return self._plans[camera][1]
+
     def render_views(self, camera: int, f_number: float, focus_distance_m: float, full: bool = False) -> DPRender:
         """Noise-free linear DP views (H, W, 3) of ``camera`` at raw resolution (diffraction included)."""
         cam = self._camera(camera)
-        lens = LensSetting(cam.focal_length_mm, float(f_number), self.true_focus_mm(focus_distance_m), cam.pixel_pitch_mm)
+        plan = self.dp_plan(camera, f_number, focus_distance_m)
         geom = self.geometry(camera)
-        hidden = None
-        if geom.hidden is not None:
-            hidden = (geom.hidden_radiance(self._pattern), geom.hidden["depth_m"] * 1000.0)
-        out = render_dp(self.radiance(camera), geom.depth_m * 1000.0, lens, self.effects_at(f_number), full=full, hidden=hidden)
+        if full:
+            hidden = None if geom.hidden is None else geom.hidden_radiance(self._pattern)
+            out = plan.render(self.radiance(camera), hidden, full=True)
+        else:  # the projector images share the dark and full-light views (pattern_views.py)
+            if camera not in self._views or self._views[camera].plan is not plan:
+                self._views[camera] = PatternViews(plan, geom)
+            left, right = self._views[camera].views(self._pattern)
+            out = DPRender(left, right, None, plan.coc_px)
         sig = diffraction_sigma_px(f_number, cam.pixel_pitch_mm)
         if sig > 0.05:
             blur = lambda a: cv2.GaussianBlur(a, (0, 0), sig, borderType=cv2.BORDER_REFLECT)  # noqa: E731
