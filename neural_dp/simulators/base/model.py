@@ -37,6 +37,8 @@ class Component(torch.nn.Module):
     changes_psf: ClassVar[bool] = False
     post_only: ClassVar[bool] = False
     """True when the component only has a :meth:`post` hook (its fit can reuse one layered render)."""
+    needs_colour: ClassVar[bool] = False
+    """True when the effect acts between colour channels: data with R = G = B cannot show it (not testable)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -44,6 +46,9 @@ class Component(torch.nn.Module):
         self.fit_names: list[str] = []
         self.bounds: dict[str, tuple[float, float]] = {}
         self.steps: dict[str, float] = {}
+        self.field_box: tuple[float, float, float, float] = (-1.0, 1.0, -1.0, 1.0)
+        """(x0, x1, y0, y1): the field (coordinates in [-1, 1]) the fit data covered; :meth:`describe` reports
+        field-dependent ranges over it only (a fit says nothing about the field it did not see)."""
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         """(B, 1 or 3, H, W) signed CoC per colour channel, px (``field`` (B, 2, H, W)). Default: unchanged."""
