@@ -84,7 +84,7 @@ class Chain:
         predicted views unchanged)."""
         model = self.steps[-1].model if self.steps else base
         if self.noise is not None and self.noise.detected and self.noise.model is not None:
-            model = model.with_component(self.noise.model.components[-1])
+            model = model.with_component(self.noise.model.component("noise"))
         return model
 
 

@@ -264,7 +264,7 @@ def keep_rim_if_better(model: BaseModel, base: BaseModel, det: list[Sample]) -> 
     alt = model.replaced(**kept)
     if masked_mse(alt, det) < masked_mse(model, det):
         log.info("%s: refit rim softness %.4f px / pixel_box %.3f predict the detection set worse than the base's %.4f / %.3f; kept the base's",
-                 model.components[-1].name if model.components else "base", model.params["rim_softness_px"], model.params["pixel_box"],
+                 "+".join(c.name for c in model.components) or "base", model.params["rim_softness_px"], model.params["pixel_box"],
                  kept["rim_softness_px"], kept["pixel_box"])
         return alt
     return model
@@ -338,10 +338,18 @@ def fit_base(fit: list[Sample], iters: int = 4) -> BaseModel:
     return base
 
 
-def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, refit_rim: bool = True) -> tuple[BaseModel, list[tuple[object, str]], float]:
+def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, refit_rim: bool = True,
+               refit_previous: str = "none") -> tuple[BaseModel, list[tuple[object, str]], float]:
     """The base model plus ``name``'s component, its parameters fitted on the fit samples (with the base
     model's gain, and its rim softness and pixel sampling, :data:`PSF_NUISANCE`, when ``refit_rim`` or the
     component changes blur).
+
+    ``base`` may already hold components (effects chosen earlier, :mod:`dp5k_diagnose.chain`);
+    ``refit_previous`` says which of their parameters are refitted with the new one: "none", "post" (those
+    of components that only change the rendered views, when the new one does too: one layered render serves
+    the fit) or "all". A new view mix changes what earlier view gains mean: on a studio set with an L/R gain
+    ratio of 1.2 and crosstalk halving the disparity, crosstalk fitted with the gain components held at
+    their values fitted alone reached 0.92 instead of 0.5, since it also scaled their L - R.
 
     Returns:
         (model, fitted targets, final fit MSE).
@@ -354,10 +362,24 @@ def fit_effect(base: BaseModel, name: str, fit: list[Sample], iters: int = 4, re
     # effect absorbs part of it (on real Canon data the base fit blurs by 1.3 px to soften a 5x too large
     # disparity; refitted with disparity_scale it falls to 0.25 px and the held-out gain rises by 1.3 dB)
     targets: list[tuple[object, str]] = [(comp, n) for n in fittable_names(comp, fit)] + [(model, "gain")]
+    targets += previous_targets(model, comp, fit, refit_previous)
     if refit_rim or comp.changes_psf or not comp.post_only:
         targets += [(model, k) for k in PSF_NUISANCE]
     cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=iters)
     return model, targets, cost
+
+
+def previous_targets(model: BaseModel, comp: object, fit: list[Sample], which: str) -> list[tuple[object, str]]:
+    """The fittable parameters of ``model``'s components other than ``comp`` that :func:`fit_effect` refits
+    (``which``: "none", "post" or "all")."""
+    if which == "none":
+        return []
+    out: list[tuple[object, str]] = []
+    for c in model.components:
+        if c is comp or not (which == "all" or (c.post_only and getattr(comp, "post_only", False))):
+            continue
+        out += [(c, n) for n in fittable_names(c, fit)]
+    return out
 
 
 def covered_field_box(samples: list[Sample]) -> tuple[float, float, float, float]:
@@ -582,11 +604,12 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
             log.info("grey data (colour contrast %.2e): %s not testable", contrast, ", ".join(untestable))
     fitted: dict[str, tuple[BaseModel, list[tuple[object, str]], float]] = {}
     for name in progress([e for e in effects if e != "noise" and e not in untestable], desc="screen effects", unit="effect"):
-        fitted[name] = fit_effect(base, name, fit, 1, refit_rim=False)
+        fitted[name] = fit_effect(base, name, fit, 1, refit_rim=False, refit_previous="post")
     order = sorted(fitted, key=lambda n: fitted[n][2])
     for name in order[: cfg.refine_top]:
         model, targets, _ = fitted[name]
         targets = targets + [(model, k) for k in PSF_NUISANCE if (model, k) not in targets]
+        targets += [t for t in previous_targets(model, model.component(name), fit, "all") if t not in targets]
         cost = fit_parameters(model, targets, [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit], iters=max(cfg.lm_iters - 1, 1))
         fitted[name] = (keep_rim_if_better(model, base, det), targets, cost)
     findings = []
@@ -603,7 +626,7 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
         delta = clustered_delta(ref_su, su, base_co, owners)
         t, p = effect_test(delta)
         effect = float((ref_su.sum() - su.sum()) / max(systematic, 1e-20))
-        comp = model.components[-1]
+        comp = model.component(name)
         params = comp.describe()
         detected = bool(p < cfg.alpha and effect > cfg.threshold(name))
         try:
@@ -750,7 +773,7 @@ def discriminate(findings: list[Finding], base: BaseModel, fit: list[Sample], de
     targets: list[tuple[object, str]] = []
     for f in (a, b):
         comp = COMPONENTS[f.effect]()
-        comp.params = dict(f.model.components[-1].params)
+        comp.params = dict(f.model.component(f.effect).params)
         model = model.with_component(comp)
         targets += [(comp, n) for n in fittable_names(comp, fit)]
     targets += [(model, "gain")] + [(model, k) for k in PSF_NUISANCE]

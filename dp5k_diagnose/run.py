@@ -31,7 +31,8 @@ class DiagnoseConfig:
     """Settings of one diagnosis.
 
     Attributes:
-        fit_pairs: at most this many training pairs are used to fit (the rest of train helps detection).
+        fit_pairs: at most this many training pairs are used to fit (the rest of train helps detection);
+            None = every train pair (the CLI's default where train is small, :func:`auto_fit_pairs`).
         crop_px: fit and detection use square crops of this side (whole images when smaller).
         crops_per_pair: crops per pair when the images are larger than ``crop_px``.
         det_pairs: at most this many pairs in the detection set.
@@ -46,7 +47,7 @@ class DiagnoseConfig:
         chain: the forward selection of every cause (:mod:`dp5k_diagnose.chain`).
     """
 
-    fit_pairs: int = 4
+    fit_pairs: int | None = 4
     crop_px: int = 96
     crops_per_pair: int = 2
     det_pairs: int = 16
@@ -169,12 +170,29 @@ def choose_splits(reader: DatasetReader, cfg: DiagnoseConfig) -> dict[str, list[
         raise BadInputError("the dataset's train split is empty; diagnose fits on train", where=reader.root)
     rng = np.random.default_rng(cfg.seed)
     order = [train[i] for i in rng.permutation(len(train))]
-    fit_ids = sorted(order[: cfg.fit_pairs])
-    rest = sorted(order[cfg.fit_pairs :])
+    n_fit = len(order) if cfg.fit_pairs is None else cfg.fit_pairs
+    fit_ids = sorted(order[:n_fit])
+    rest = sorted(order[n_fit:])
     det_ids = (val + rest)[: cfg.det_pairs] if (val or rest) else fit_ids
     gain_split = "test" if test else ("val" if val else "train")
     gain_ids = test or val or train
     return {"fit": fit_ids, "detect": det_ids, gain_split: gain_ids}
+
+
+SMALL_TRAIN_PAIRS = 8
+"""A train split of at most this many pairs is fitted whole by the CLI's ``--fit-pairs auto`` (when another
+split holds pairs to detect on); a larger one fits :data:`DEFAULT_FIT_PAIRS`."""
+DEFAULT_FIT_PAIRS = 6
+"""Fit pairs of ``--fit-pairs auto`` on a larger train split."""
+
+
+def auto_fit_pairs(dataset: str | Path) -> int | None:
+    """``--fit-pairs auto``: None (every train pair) where train is small and val is not empty, else
+    :data:`DEFAULT_FIT_PAIRS`."""
+    reader = DatasetReader(dataset)
+    small = len(reader.ids("train")) <= SMALL_TRAIN_PAIRS
+    has_val = "val" in reader.splits and bool(reader.ids("val"))
+    return None if small and has_val else DEFAULT_FIT_PAIRS
 
 
 def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Diagnosis:

@@ -48,6 +48,7 @@ class LRGainImbalance(Component):
 
     name = "lr_gain_imbalance"
     post_only = True
+    stage = 1
     KEYS = ("a0", "ax", "ay", "axx", "ayy")
 
     def __init__(self) -> None:
@@ -189,6 +190,7 @@ class FocusOffset(Component):
     """
 
     name = "focus_offset"
+    stage = -1
 
     def __init__(self) -> None:
         super().__init__()
@@ -319,6 +321,7 @@ class Misregistration(Component):
 
     name = "misregistration"
     post_only = True
+    stage = 2
     KEYS = ("left_dx_px", "left_dy_px", "right_dx_px", "right_dy_px")
 
     def __init__(self) -> None:
@@ -386,6 +389,7 @@ class Noise(Component):
 
     name = "noise"
     post_only = True
+    stage = 3
 
     def __init__(self) -> None:
         super().__init__()
