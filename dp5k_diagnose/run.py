@@ -141,6 +141,7 @@ class Diagnosis:
     causes: list[dict[str, Any]] = field(default_factory=list)
     noise_model: dict[str, Any] = field(default_factory=dict)
     fit_coverage: dict[str, Any] = field(default_factory=dict)
+    extended_intervals: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -152,6 +153,7 @@ class Diagnosis:
             "gain": self.gain,
             "base_params": dict(self.base.params),
             "extended_model": self.extended.describe(),
+            "extended_model_intervals": {k: {n: list(v) for n, v in d.items()} for k, d in self.extended_intervals.items()},
             "noise_model": self.noise_model,
             "fit_coverage": self.fit_coverage,
             "splits_used": self.splits_used,
@@ -247,7 +249,7 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
     return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, chain.first_discrimination, reading,
-                     causes, noise_model(chain.noise, cfg.detect), coverage)
+                     causes, noise_model(chain.noise, cfg.detect), coverage, intervals)
 
 
 def _mean(x: np.ndarray) -> float:
@@ -287,7 +289,9 @@ def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetr
 
 
 def _json_params(p: dict[str, Any]) -> dict[str, Any]:
-    return {k: ([float(x) for x in v] if isinstance(v, (list, tuple)) else float(v)) for k, v in p.items()}
+    """Parameters as JSON numbers (a non-finite one, e.g. an offset in mm without a recorded distance, as null)."""
+    num = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+    return {k: ([num(x) for x in v] if isinstance(v, (list, tuple)) else num(v)) for k, v in p.items()}
 
 
 def noise_model(noise: Finding | None, cfg: DetectConfig) -> dict[str, Any]:
