@@ -142,6 +142,9 @@ class Diagnosis:
     noise_model: dict[str, Any] = field(default_factory=dict)
     fit_coverage: dict[str, Any] = field(default_factory=dict)
     extended_intervals: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
+    chain_tests: list[list[dict[str, Any]]] = field(default_factory=list)
+    """Per step of the chain, every effect tested against the model of the steps before (name, effect size,
+    p-value, detected, testable)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -154,6 +157,7 @@ class Diagnosis:
             "base_params": dict(self.base.params),
             "extended_model": self.extended.describe(),
             "extended_model_intervals": {k: {n: list(v) for n, v in d.items()} for k, d in self.extended_intervals.items()},
+            "chain_tests": self.chain_tests,
             "noise_model": self.noise_model,
             "fit_coverage": self.fit_coverage,
             "splits_used": self.splits_used,
@@ -249,7 +253,9 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
     return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, chain.first_discrimination, reading,
-                     causes, noise_model(chain.noise, cfg.detect), coverage, intervals)
+                     causes, noise_model(chain.noise, cfg.detect), coverage, intervals,
+                     [[{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in step]
+                      for step in chain.step_findings])
 
 
 def _mean(x: np.ndarray) -> float:
