@@ -56,7 +56,6 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     from .run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
     spec = ModelSpec.parse(model)
-    n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)
     try:
         shot_var, read_sigma = (float(v) for v in nominal_noise.split(","))
     except ValueError as exc:
@@ -72,6 +71,7 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         if not (sharp_n >= 0 and sharp_n < float("inf")):
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
+    n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out_dir or (dataset / f"diagnose-{spec.folder_name()}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps))
