@@ -95,6 +95,9 @@ def test_noise_model_is_always_reported_and_nominal_noise_is_not_a_cause(gain_an
     assert "noise" not in [c["name"] for c in rep["causes"]]
 
 
+@pytest.mark.xfail(strict=True, reason="known gap (docs/diagnose.md, 'Every cause: two-effect cases'): a bright rim and a "
+                   "focus offset hide each other from one-at-a-time screening; each alone is not significant against the base model "
+                   "(psf_profile makes it worse, focus_offset p = 0.13) and a look-alike (an L/R split shift) is chosen first")
 def test_psf_profile_and_focus_offset_are_both_named(profile_and_focus) -> None:
     rep, truth = profile_and_focus
     by = _check_chain(rep, {"psf_profile", "focus_offset"})
