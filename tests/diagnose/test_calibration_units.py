@@ -101,3 +101,36 @@ def test_focus_offset_recomputes_the_coc_from_the_float_coc_not_rounded_depth() 
     rounded = coc_diameter_px(depth.round().numpy(), 1.03 * F, f, N, pitch)
     assert np.abs(got - want).max() < 1e-3
     assert np.abs(rounded - want).max() > 0.1  # what whole millimetres of depth would have cost
+
+
+def test_chain_puts_noise_after_every_structural_cause_and_adds_up_the_step_gains() -> None:
+    from dp5k_diagnose.chain import Chain, ChainStep
+    from dp5k_diagnose.detect import Finding
+    from dp5k_diagnose.gain import PairMetrics
+    from dp5k_diagnose.run import DiagnoseConfig, cause_entries
+    from neural_dp.simulators.base.components import DisparityScale, Noise
+
+    base = BaseModel()
+    lr, ds = LRGainImbalance(), DisparityScale()
+    m1 = base.with_component(lr)
+    m2 = m1.with_component(ds)
+    assert [c.name for c in m2.components] == ["disparity_scale", "lr_gain_imbalance"]  # crosstalk acts before gains
+    noise_model = base.with_component(Noise())
+    noise = Finding("noise", 5.0, 1e-6, 3.0, True, {"shot_var": 1e-4, "read_sigma": 2e-3}, "noise", noise_model,
+                    intervals={"shot_var": (8e-5, 1.2e-4)})
+    steps = [ChainStep(Finding("lr_gain_imbalance", 4.0, 1e-4, 0.9, True, {}, "lr", m1), m1),
+             ChainStep(Finding("disparity_scale", 3.0, 1e-3, 0.8, True, {}, "ds", m2), m2)]
+    chain = Chain(steps, [noise, steps[0].finding, steps[1].finding], None, noise)
+    assert chain.names == ["lr_gain_imbalance", "disparity_scale", "noise"]
+    assert chain.extended(base).component("noise") is not None
+    ids = [f"p{i}" for i in range(4)]
+    flat = np.zeros(4)
+    before = PairMetrics(ids, np.array([30.0, 31.0, 32.0, 33.0]), flat, flat)
+    after1 = PairMetrics(ids, before.psnr + np.array([10.0, 11.0, 9.0, 10.0]), flat, flat)
+    after2 = PairMetrics(ids, after1.psnr + np.array([2.0, 1.0, 3.0, 2.0]), flat, flat)
+    out = cause_entries(chain, before, [after1, after2], {}, DiagnoseConfig(n_boot=200))
+    assert [c["name"] for c in out] == ["lr_gain_imbalance", "disparity_scale", "noise"]
+    assert out[0]["gain_db"] == pytest.approx(10.0) and out[1]["gain_db"] == pytest.approx(2.0)
+    assert out[1]["cumulative_gain_db"] == pytest.approx(12.0) and out[1]["gain_ci_db"][0] > 0
+    assert out[2]["gain_db"] == 0.0 and out[2]["gain_ci_db"] == [0.0, 0.0] and out[2]["cumulative_gain_db"] == pytest.approx(12.0)
+    assert out[2]["param_intervals"]["shot_var"] == [8e-5, 1.2e-4]
