@@ -10,6 +10,8 @@ Layout (docs/data-format.md is the normative description)::
                          depth.png   uint16 single channel, millimetres, 0 = invalid
                          coc.tif     float32 single channel, signed CoC diameter in output pixels,
                                      NaN where depth is invalid
+                         depth.tif   optional float32 single channel, millimetres (sub-mm depth); read in
+                                     place of depth.png's values where present (depth.png stays)
                          params.json see :class:`PairParams`
 
 Reading is lazy: :class:`DatasetReader` validates ``dataset.json`` on open and each pair when it is
@@ -40,6 +42,11 @@ FORMAT_NAME = "dp5k-dataset"
 FORMAT_VERSION = 1
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 PAIR_FILES: tuple[str, ...] = ("sharp.png", "left.png", "right.png", "depth.png", "coc.tif", "params.json")
+DEPTH_TIF = "depth.tif"
+"""Optional per-pair file: float32 depth in mm, the sub-millimetre values behind depth.png's whole mm."""
+DEPTH_TIF_TOL_MM = 0.501
+"""Largest |depth.tif - depth.png| (mm) where depth.png is valid and below its 65535 mm ceiling: rounding to
+whole mm moves a value by at most 0.5 mm; more means the two files describe different depths."""
 _PAIR_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
@@ -400,14 +407,33 @@ class DatasetReader:
         if np.isinf(coc).any():
             raise DatasetFormatError("contains inf (use NaN for invalid pixels)", where=where("coc.tif"))
         coc = np.where(valid_depth, coc, np.float32(np.nan)).astype(np.float32)
+        depth_mm = depth.astype(np.float32)
+        if (base / DEPTH_TIF).is_file():
+            depth_mm = self._sub_mm_depth(read(DEPTH_TIF), depth, where(DEPTH_TIF), check_shape)
         return Pair(
             params=params,
             sharp=views["sharp.png"],
             left=views["left.png"],
             right=views["right.png"],
-            depth_mm=depth.astype(np.float32),
+            depth_mm=depth_mm,
             coc_px=coc,
         )
+
+    @staticmethod
+    def _sub_mm_depth(tif: NDArray[Any], png: NDArray[np.uint16], where: str, check_shape: Any) -> NDArray[np.float32]:
+        """(H, W) float32 mm from depth.tif, 0 wherever depth.png is invalid (0); checked against depth.png."""
+        if tif.dtype != np.float32:
+            raise DatasetFormatError(f"must be float32, got {tif.dtype}", where=where)
+        check_shape(DEPTH_TIF, tif, 1)
+        valid = png > 0
+        bad = valid & ~(np.isfinite(tif) & (tif > 0))
+        if bad.any():
+            raise DatasetFormatError(f"{int(bad.sum())} pixel(s) are not a positive finite depth where depth.png is valid", where=where)
+        below_cap = valid & (png < np.iinfo(np.uint16).max)
+        off = np.abs(tif[below_cap].astype(np.float64) - png[below_cap])
+        if off.size and float(off.max()) > DEPTH_TIF_TOL_MM:
+            raise DatasetFormatError(f"disagrees with depth.png by up to {float(off.max()):.2f} mm (more than rounding)", where=where)
+        return np.where(valid, tif, np.float32(0.0)).astype(np.float32)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.ids())
@@ -426,6 +452,7 @@ def write_pair(
     depth_mm: NDArray[np.floating],
     coc_px: NDArray[np.floating],
     overwrite: bool = False,
+    sub_mm_depth: bool = False,
 ) -> Path:
     """Write one pair atomically (temporary folder, then rename).
 
@@ -436,6 +463,8 @@ def write_pair(
         depth_mm: (H, W) depth in mm, 0 (or NaN) = invalid; stored rounded to whole mm, clipped to 65535.
         coc_px: (H, W) signed CoC diameter in output pixels; written NaN wherever depth is invalid.
         overwrite: replace an existing pair folder (otherwise an existing pair is an error).
+        sub_mm_depth: also write ``depth.tif``, the depth in mm as float32 (0 where invalid), which readers
+            use in place of depth.png's whole millimetres.
 
     Returns:
         The pair's folder.
@@ -466,6 +495,8 @@ def write_pair(
         write_png16(tmp / "left.png", to_uint16(left))
         write_png16(tmp / "right.png", to_uint16(right))
         write_png16(tmp / "depth.png", depth_u16)
+        if sub_mm_depth:
+            write_tiff_float32(tmp / DEPTH_TIF, np.where(depth_u16 > 0, depth, 0.0).astype(np.float32))
         write_tiff_float32(tmp / "coc.tif", coc)
         write_json_atomic(tmp / "params.json", params.to_json())
         if final.exists():

@@ -15,12 +15,29 @@ from .model_spec import ModelSpec
 log = logging.getLogger(__name__)
 
 
+def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
+    """``--fit-pairs``: a positive count, ``all`` (None) or ``auto`` (``auto(dataset)``)."""
+    t = text.strip().lower()
+    if t == "all":
+        return None
+    if t == "auto":
+        return auto(dataset)
+    try:
+        n = int(t)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise BadInputError(f"--fit-pairs must be 'auto', 'all' or a count >= 1, got {text!r}", where="--fit-pairs")
+    return n
+
+
 @click.command("diagnose")
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--model", default="base", show_default=True, help="base | disk | butterworth | raytrace | neural:CKPT")
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None, help="Report folder (default: DATASET/diagnose-<model>).")
 @click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
-@click.option("--fit-pairs", default=6, show_default=True, help="Training pairs used to fit.")
+@click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
+              help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
 @click.option("--neural-steps", default=FinetuneConfig.steps, show_default=True, type=click.IntRange(1),
@@ -28,7 +45,7 @@ log = logging.getLogger(__name__)
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
                    "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
-def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: int, nominal_noise: str,
+def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: str, nominal_noise: str,
                      neural_steps: int, sharp_f_number: str) -> None:
     """Fit MODEL on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
@@ -36,7 +53,7 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     """
     from .detect import DetectConfig
     from .neural_reach import NeuralReachConfig
-    from .run import DiagnoseConfig, run_diagnose
+    from .run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
     spec = ModelSpec.parse(model)
     try:
@@ -54,10 +71,11 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
         if not (sharp_n >= 0 and sharp_n < float("inf")):
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
+    n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out_dir or (dataset / f"diagnose-{spec.folder_name()}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps))
-    res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=fit_pairs, detect=detect, neural=neural,
+    res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
                                                           sharp_f_number=sharp_n))
     g = res["gain"]
     sr = res.get("sharp_reading") or {}
@@ -67,6 +85,13 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     click.echo(f"cause: {res['cause']}")
     if res["cause"] != "none":
         click.echo(f"  {res['findings'][0]['explanation']}")
+    if len(res["causes"]) > 1:
+        click.echo("every cause, in order:")
+        for c in res["causes"]:
+            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB (95% CI [{c['gain_ci_db'][0]:+.3f}, {c['gain_ci_db'][1]:+.3f}]), "
+                       f"cumulative {c['cumulative_gain_db']:+.3f} dB")
+    cov = res["fit_coverage"]
+    click.echo(f"fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, {cov['field_zones']} of {cov['field_zones_of']} field zones")
     click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
                f"(95% CI of the gain [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
     av = g.get("all_valid")

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
@@ -17,8 +18,9 @@ from neural_dp.simulators.base import BaseModel
 from neural_dp.simulators.base.spec import model_to_spec
 
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
-from .detect import DetectConfig, Discrimination, Finding, discriminate, fit_base, masked_mse, name_cause, test_effects
-from .gain import gain_report, pair_metrics_by_mask
+from .chain import Chain, ChainConfig, model_intervals, select_causes
+from .detect import DetectConfig, Discrimination, Finding, fit_base, masked_mse
+from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics_by_mask
 from .model_spec import ModelSpec
 from .neural_reach import NeuralReachConfig
 
@@ -30,7 +32,8 @@ class DiagnoseConfig:
     """Settings of one diagnosis.
 
     Attributes:
-        fit_pairs: at most this many training pairs are used to fit (the rest of train helps detection).
+        fit_pairs: at most this many training pairs are used to fit (the rest of train helps detection);
+            None = every train pair (the CLI's default where train is small, :func:`auto_fit_pairs`).
         crop_px: fit and detection use square crops of this side (whole images when smaller).
         crops_per_pair: crops per pair when the images are larger than ``crop_px``.
         det_pairs: at most this many pairs in the detection set.
@@ -42,9 +45,10 @@ class DiagnoseConfig:
             ``seed``.
         sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
             None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
+        chain: the forward selection of every cause (:mod:`dp5k_diagnose.chain`).
     """
 
-    fit_pairs: int = 4
+    fit_pairs: int | None = 4
     crop_px: int = 96
     crops_per_pair: int = 2
     det_pairs: int = 16
@@ -54,6 +58,7 @@ class DiagnoseConfig:
     effects: tuple[str, ...] = EFFECT_NAMES
     neural: NeuralReachConfig = field(default_factory=NeuralReachConfig)
     sharp_f_number: float | None = None
+    chain: ChainConfig = field(default_factory=ChainConfig)
 
 
 SHARP_READINGS = (SHARP_F_NUMBER, 0.0)
@@ -94,13 +99,15 @@ class _Pass:
     """One diagnosis of the fit and detection sets under one reading of ``sharp``."""
 
     base: BaseModel
-    findings: list[Finding]
-    discrimination: Discrimination | None
-    cause: str
+    chain: Chain
     extended: BaseModel
     detect_mse: float
     seconds: tuple[float, float]
     """(fitting the base model, testing the effects)."""
+
+    @property
+    def cause(self) -> str:
+        return self.chain.names[0] if self.chain.names else NO_EFFECT
 
 
 def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _Pass:
@@ -108,12 +115,15 @@ def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _
     base = fit_base(fit, cfg.detect.base_lm_iters)
     log.info("base model fitted: %s", base.params)
     t1 = time.perf_counter()
-    findings = test_effects(base, fit, det, cfg.detect, cfg.effects)
-    disc = discriminate(findings, base, fit, det, cfg.detect)
-    cause = name_cause(findings)
-    extended = findings[0].model if cause != NO_EFFECT and findings[0].model is not None else base
+    chain = select_causes(base, fit, det, cfg.detect, cfg.chain, cfg.effects)
+    extended = chain.extended(base)
     mse = masked_mse(extended, det)
-    return _Pass(base, findings, disc, cause, extended, mse, (t1 - t0, time.perf_counter() - t1))
+    return _Pass(base, chain, extended, mse, (t1 - t0, time.perf_counter() - t1))
+
+
+def ordered_findings(findings: list[Finding], cause: str) -> list[Finding]:
+    """Step 1's findings with the cause's first (a structural cause leads ``noise``, which cannot raise PSNR)."""
+    return sorted(findings, key=lambda f: f.effect != cause)
 
 
 @dataclass
@@ -129,17 +139,29 @@ class Diagnosis:
     splits_used: dict[str, list[str]]
     discrimination: Discrimination | None = None
     sharp_reading: SharpReading = field(default_factory=lambda: SharpReading(None, "params.json"))
+    causes: list[dict[str, Any]] = field(default_factory=list)
+    noise_model: dict[str, Any] = field(default_factory=dict)
+    fit_coverage: dict[str, Any] = field(default_factory=dict)
+    extended_intervals: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
+    chain_tests: list[list[dict[str, Any]]] = field(default_factory=list)
+    """Per step of the chain, every effect tested against the model of the steps before (name, effect size,
+    p-value, detected, testable)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
             "model": self.model,
             "dataset": self.dataset,
             "cause": self.cause,
+            "causes": self.causes,
             "findings": [f.to_json() for f in self.findings],
             "gain": self.gain,
             "base_params": dict(self.base.params),
             "extended_model": self.extended.describe(),
             "extended_model_spec": model_to_spec(self.extended),
+            "extended_model_intervals": {k: {n: list(v) for n, v in d.items()} for k, d in self.extended_intervals.items()},
+            "chain_tests": self.chain_tests,
+            "noise_model": self.noise_model,
+            "fit_coverage": self.fit_coverage,
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
             "discrimination": self.discrimination.to_json() if self.discrimination else None,
@@ -156,12 +178,29 @@ def choose_splits(reader: DatasetReader, cfg: DiagnoseConfig) -> dict[str, list[
         raise BadInputError("the dataset's train split is empty; diagnose fits on train", where=reader.root)
     rng = np.random.default_rng(cfg.seed)
     order = [train[i] for i in rng.permutation(len(train))]
-    fit_ids = sorted(order[: cfg.fit_pairs])
-    rest = sorted(order[cfg.fit_pairs :])
+    n_fit = len(order) if cfg.fit_pairs is None else cfg.fit_pairs
+    fit_ids = sorted(order[:n_fit])
+    rest = sorted(order[n_fit:])
     det_ids = (val + rest)[: cfg.det_pairs] if (val or rest) else fit_ids
     gain_split = "test" if test else ("val" if val else "train")
     gain_ids = test or val or train
     return {"fit": fit_ids, "detect": det_ids, gain_split: gain_ids}
+
+
+SMALL_TRAIN_PAIRS = 8
+"""A train split of at most this many pairs is fitted whole by the CLI's ``--fit-pairs auto`` (when another
+split holds pairs to detect on); a larger one fits :data:`DEFAULT_FIT_PAIRS`."""
+DEFAULT_FIT_PAIRS = 6
+"""Fit pairs of ``--fit-pairs auto`` on a larger train split."""
+
+
+def auto_fit_pairs(dataset: str | Path) -> int | None:
+    """``--fit-pairs auto``: None (every train pair) where train is small and val is not empty, else
+    :data:`DEFAULT_FIT_PAIRS`."""
+    reader = DatasetReader(dataset)
+    small = len(reader.ids("train")) <= SMALL_TRAIN_PAIRS
+    has_val = "val" in reader.splits and bool(reader.ids("val"))
+    return None if small and has_val else DEFAULT_FIT_PAIRS
 
 
 def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Diagnosis:
@@ -195,19 +234,109 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     if len(passes) > 1:
         log.info("sharp read as %s (detection MSE %s)", "all-in-focus" if chosen == 0 else f"f/{chosen:g}", reading.detect_mse)
     ps = passes[chosen]
-    base, findings, disc, cause, extended = ps.base, ps.findings, ps.discrimination, ps.cause, ps.extended
+    base, chain, extended = ps.base, ps.chain, ps.extended
+    cause = ps.cause
+    findings = ordered_findings(chain.first_findings, cause)
     t_fit = t_load + sum(p.seconds[0] for p in passes.values())
     t_det = time.perf_counter()
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
     held = reading.apply(full_samples(load_pairs(reader, splits[gain_split])))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
+    step_metrics = [pair_metrics_by_mask(lambda s, m=st.model: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
+                    for st in chain.steps]
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
     gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
     g_all = gain_report(before["valid"], after["valid"], gain_split, cfg.n_boot, cfg.seed, "valid")
     gain["all_valid"] = {k: v for k, v in g_all.items() if k not in ("split", "per_pair_psnr_gain")}
+    fit_used = reading.apply(fit)
+    intervals = model_intervals(chain.steps[-1].model, fit_used) if chain.steps else {}
+    causes = cause_entries(chain, before["predictable"], step_metrics, intervals, cfg)
+    coverage = fit_coverage(reader, fit)
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
-    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, disc, reading)
+    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, chain.first_discrimination, reading,
+                     causes, noise_model(chain.noise, cfg.detect), coverage, intervals,
+                     [[{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in step]
+                      for step in chain.step_findings])
+
+
+def _mean(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=np.float64)
+    return float(x[np.isfinite(x)].mean()) if np.isfinite(x).any() else 0.0
+
+
+def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetrics],
+                  intervals: dict[str, dict[str, tuple[float, float]]], cfg: DiagnoseConfig) -> list[dict[str, Any]]:
+    """report.json ``causes``: per chosen effect, in order, its parameters in the final (extended) model with
+    95 % intervals, its finding at its step (effect size and p against the model of the steps before), the
+    held-out PSNR gain (dB) the step adds with a bootstrap CI over pairs, and the cumulative gain; ``noise``
+    last (gain exactly 0: a prediction is an expectation)."""
+    final = chain.steps[-1].model if chain.steps else None
+    out: list[dict[str, Any]] = []
+    prev = before.psnr
+    cumulative = 0.0
+    for k, (st, pm) in enumerate(zip(chain.steps, step_metrics)):
+        name = st.finding.effect
+        comp = next(c for c in final.components if c.name == name)
+        d = pm.psnr - prev
+        lo, hi = bootstrap_ci(d, cfg.n_boot, seed=cfg.seed)
+        cumulative = _mean(pm.psnr - before.psnr)
+        out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()),
+                    "param_intervals": {n: list(v) for n, v in intervals.get(name, {}).items()},
+                    "effect_size": st.finding.effect_size, "p_value": st.finding.p_value,
+                    "gain_db": _mean(d), "gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
+                    "explanation": st.finding.explanation})
+        prev = pm.psnr
+    nz = chain.noise
+    if nz is not None and nz.detected:
+        out.append({"name": "noise", "step": len(out) + 1, "params": _json_params(nz.params),
+                    "param_intervals": {n: list(v) for n, v in nz.intervals.items()}, "effect_size": nz.effect_size,
+                    "p_value": nz.p_value, "gain_db": 0.0, "gain_ci_db": [0.0, 0.0], "cumulative_gain_db": cumulative,
+                    "explanation": nz.explanation})
+    return out
+
+
+def _json_params(p: dict[str, Any]) -> dict[str, Any]:
+    """Parameters as JSON numbers (a non-finite one, e.g. an offset in mm without a recorded distance, as null)."""
+    num = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+    return {k: ([num(x) for x in v] if isinstance(v, (list, tuple)) else num(v)) for k, v in p.items()}
+
+
+def noise_model(noise: Finding | None, cfg: DetectConfig) -> dict[str, Any]:
+    """report.json ``noise_model``: the views' measured white noise (variance = shot_var I + read_sigma^2,
+    linear units) against the final model, with 95 % bootstrap intervals over pairs, the nominal sensor it is
+    compared with, and whether its excess is significant (then ``noise`` is among the causes)."""
+    if noise is None or not noise.params:
+        return {"measured": False, "note": noise.explanation if noise is not None else "noise not tested"}
+    keys = ("shot_var", "read_sigma", "variance_ratio")
+    return {"measured": True, **{k: float(noise.params[k]) for k in keys},
+            "intervals": {k: list(noise.intervals[k]) for k in keys if k in noise.intervals},
+            "nominal": {"shot_var": cfg.nominal_shot_var, "read_sigma": cfg.nominal_read_sigma},
+            "excess_p_value": float(noise.p_value), "excess_significant": bool(noise.detected)}
+
+
+FIELD_ZONES = 3
+"""The field [-1, 1]^2 is cut into FIELD_ZONES x FIELD_ZONES zones to say how much of it a fit saw."""
+
+
+def fit_coverage(reader: DatasetReader, fit: list[Sample]) -> dict[str, Any]:
+    """How much the fit saw: pairs, scenes, crops, field zones (of :data:`FIELD_ZONES` squared) holding scored
+    pixels, and the field box they span (x0, x1, y0, y1 in [-1, 1])."""
+    ids = sorted({pid for s in fit for pid in s.batch.pair_ids})
+    scenes = sorted({reader.params(pid).scene for pid in ids})
+    zones: set[tuple[int, int]] = set()
+    box = [1.0, -1.0, 1.0, -1.0]
+    for s in fit:
+        m = s.score[:, 0]
+        x, y = s.field[:, 0][m], s.field[:, 1][m]
+        if x.numel() == 0:
+            continue
+        box = [min(box[0], float(x.min())), max(box[1], float(x.max())), min(box[2], float(y.min())), max(box[3], float(y.max()))]
+        zx = ((x + 1) / 2 * FIELD_ZONES).long().clamp(0, FIELD_ZONES - 1)
+        zy = ((y + 1) / 2 * FIELD_ZONES).long().clamp(0, FIELD_ZONES - 1)
+        zones |= {(int(a), int(b)) for a, b in torch.unique(torch.stack([zx, zy], 1), dim=0).tolist()}
+    return {"pairs": len(ids), "scenes": len(scenes), "crops": sum(s.batch.sharp.shape[0] for s in fit),
+            "field_zones": len(zones), "field_zones_of": FIELD_ZONES**2, "field_box": box}
 
 
 def analyse(predict, samples: list[Sample], with_psfs: bool = True) -> dict[str, Any]:

@@ -240,7 +240,7 @@ def make_dataset(
                                 (fx, fy), (W, H), {**rp.extra, "sharp_f_number": 0.0 if all_in_focus_sharp else SHARP_F_NUMBER,  # pairs share the first render
                                                    "source": "studio", "scene_seed": scene.seed})
             write_pair(out, params, sharp=sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm, coc_px=rp.coc_px,
-                       overwrite=overwrite)
+                       overwrite=overwrite, sub_mm_depth=True)
             scene_ids.setdefault(scene.name, []).append(pair_id)
     split = split_scenes(list(scene_ids), seed=seed)
     splits = {name: [pid for sc in scs for pid in scene_ids[sc]] for name, scs in split.items()}
@@ -289,7 +289,7 @@ def make_dataset_from_rgbd(
                             pp.pixel_pitch_mm, pp.focus_point_px, pp.image_size,
                             {**extra, **rp.extra, "source": "rgbd", "source_dataset": str(Path(source).name)})
         write_pair(out, params, sharp=pair.sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm,
-                   coc_px=rp.coc_px, overwrite=overwrite)
+                   coc_px=rp.coc_px, overwrite=overwrite, sub_mm_depth=True)
     write_index(out, {name: src.ids(name) for name in src.splits}, effects=eff.to_json(),
                 generator={"tool": "dp5k studio make-dataset --from", "seed": int(seed), "source": str(source)})
     return out

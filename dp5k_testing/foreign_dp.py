@@ -186,7 +186,9 @@ class Planted:
 
     @classmethod
     def of(cls, effect: str | None, strength: float = 1.0) -> "Planted":
-        return cls({} if effect in (None, "none") else {effect: EFFECT_DEFAULTS[effect] * strength})
+        """``effect`` is a name, ``none``, or several names joined by ``+`` (each at ``strength``)."""
+        names = [] if effect in (None, "none") else effect.split("+")
+        return cls({name: EFFECT_DEFAULTS[name] * strength for name in names})
 
     def get(self, name: str) -> float:
         return self.a.get(name, 0.0)

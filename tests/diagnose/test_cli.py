@@ -26,6 +26,9 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     for bad in ("f/22", "-1", "inf", "nan"):
         res = runner.invoke(main, ["diagnose", str(tmp_path), "--sharp-f-number", bad])
         assert res.exit_code == 3 and "--sharp-f-number" in res.output, (bad, res.output)
+    for bad in ("0", "some", "-2"):
+        res = runner.invoke(main, ["diagnose", str(tmp_path), "--fit-pairs", bad])
+        assert res.exit_code == 3 and "--fit-pairs" in res.output, (bad, res.output)
 
 
 @pytest.mark.slow
@@ -47,8 +50,14 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
     assert g["mask"] == "predictable" and g["all_valid"]["mask"] == "valid"
     assert set(g["all_valid"]) >= {"psnr_before", "psnr_after", "ssim_before", "mae_after", "psnr_gain_ci95"}
     assert g["all_valid"]["psnr_after"] > g["all_valid"]["psnr_before"]
+    assert rep["causes"][0]["name"] == "lr_gain_imbalance" and rep["causes"][0]["gain_ci_db"][0] > 0
+    lo, hi = rep["causes"][0]["param_intervals"]["a0"]
+    assert lo <= rep["causes"][0]["params"]["a0"] <= hi and lo < 0.2 < hi  # planted a0 = 0.2
+    nm = rep["noise_model"]
+    assert nm["measured"] and nm["intervals"]["read_sigma"][0] <= nm["read_sigma"] <= nm["intervals"]["read_sigma"][1]
+    assert rep["fit_coverage"]["pairs"] == 6 and rep["fit_coverage"]["field_zones"] >= 1  # --fit-pairs auto: 10 train pairs
     md = (out / "report.md").read_text()
-    assert "Cause: `lr_gain_imbalance`" in md
+    assert "Cause: `lr_gain_imbalance`" in md and "## Causes, in order" in md and "The fits saw 6 pairs" in md
     for fig in rep["figures"].values():
         assert (out / fig).is_file() and (out / fig).stat().st_size > 1000
 

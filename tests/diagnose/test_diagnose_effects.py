@@ -103,14 +103,14 @@ def test_diagnose_names_the_hidden_effect(case: int, tmp_path: Path, request: py
     assert [f["effect"] for f in report["findings"]].count(effect) == (effect != NO_EFFECT)
     assert {f["effect"] for f in report["findings"]} == set(EFFECT_NAMES)
     if effect == NO_EFFECT:
-        assert report["cause"] == NO_EFFECT, summary
+        assert report["cause"] == NO_EFFECT and report["causes"] == [], summary
         assert g["psnr_after"] == g["psnr_before"] and g["psnr_gain_ci95"] == [0.0, 0.0]
         return
     if effect in SMALL_EFFECTS:
         assert report["cause"] in (effect, NO_EFFECT), summary
         assert g["psnr_gain_ci95"][0] >= -0.05, summary
         return
-    assert report["cause"] == effect, summary
+    assert report["cause"] == effect and report["causes"][0]["name"] == effect, summary
     fitted = next(f for f in report["findings"] if f["effect"] == effect)["params"]
     assert not _near(fitted, truth, effect), (summary, _near(fitted, truth, effect))
     if effect == "noise":

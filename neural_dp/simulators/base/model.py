@@ -37,6 +37,15 @@ class Component(torch.nn.Module):
     changes_psf: ClassVar[bool] = False
     post_only: ClassVar[bool] = False
     """True when the component only has a :meth:`post` hook (its fit can reuse one layered render)."""
+    stage: ClassVar[int] = 0
+    """Where the component acts in the image chain: a model applies its components sorted by stage (stable),
+    whatever order they were added in. -1: the lens' focus (CoC from the recorded optics, before any
+    field or colour change of it); 0: blur and photodiode crosstalk; 1: per-view gains; 2: the views'
+    registration; 3: noise. Crosstalk before gains is what the studio and dp5k_testing/foreign_dp.py do;
+    both orders are 2 x 2 mixes of the views and differ only at second order, and diagnose refits earlier
+    gain components with every later one."""
+    needs_colour: ClassVar[bool] = False
+    """True when the effect acts between colour channels: data with R = G = B cannot show it (not testable)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -44,6 +53,9 @@ class Component(torch.nn.Module):
         self.fit_names: list[str] = []
         self.bounds: dict[str, tuple[float, float]] = {}
         self.steps: dict[str, float] = {}
+        self.field_box: tuple[float, float, float, float] = (-1.0, 1.0, -1.0, 1.0)
+        """(x0, x1, y0, y1): the field (coordinates in [-1, 1]) the fit data covered; :meth:`describe` reports
+        field-dependent ranges over it only (a fit says nothing about the field it did not see)."""
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         """(B, 1 or 3, H, W) signed CoC per colour channel, px (``field`` (B, 2, H, W)). Default: unchanged."""
@@ -102,8 +114,16 @@ class BaseModel(DPSimulator):
 
     # -- composition -----------------------------------------------------------------------------
     def with_component(self, comp: Component) -> "BaseModel":
-        """A new model with the same base parameters and components plus ``comp``."""
-        return self.replaced(list(self.components) + [comp])
+        """A new model with the same base parameters and components plus ``comp``, placed by its
+        :attr:`Component.stage`."""
+        return self.replaced(sorted(list(self.components) + [comp], key=lambda c: c.stage))
+
+    def component(self, name: str) -> Component:
+        """The component named ``name`` (KeyError when the model has none)."""
+        for c in self.components:
+            if c.name == name:
+                return c
+        raise KeyError(name)
 
     def replaced(self, components: Sequence[Component] | None = None, **params: float) -> "BaseModel":
         """A new model with these ``components`` (default: the same) and base ``params`` changed, the rest kept."""
