@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.errors import BadInputError
+from neural_dp.cli import config_overrides, refuse_fresh_run_over, training_options
 
 
 @click.group("deblur")
@@ -18,18 +18,9 @@ def deblur_group() -> None:
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
               help="Run folder (config.json, last.pt, best.pt, history.json).")
-@click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
-              help="TOML (or JSON) config file; see dp5k_deblur/config.py.")
-@click.option("--epochs", type=int, default=None, help="Override optim.epochs.")
-@click.option("--batch-size", type=int, default=None, help="Override data.batch_size (per process).")
-@click.option("--lr", type=float, default=None, help="Override optim.lr.")
-@click.option("--crop", type=int, default=None, help="Override data.crop_px.")
-@click.option("--device", default=None, help="cpu, cuda, cuda:N or auto (default: auto).")
-@click.option("--seed", type=int, default=None, help="Override seed.")
-@click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Any config override; repeatable.")
+@training_options("dp5k_deblur/config.py")
 @click.option("--init-from", type=click.Path(path_type=Path), default=None,
               help="Start a fresh run from this deblurrer checkpoint's weights (fine-tuning).")
-@click.option("--no-resume", is_flag=True, help="Ignore an existing last.pt (refuses if it exists, to protect it).")
 def deblur_train_command(dataset: Path, out_dir: Path, config_file: Path | None, epochs: int | None, batch_size: int | None,
                          lr: float | None, crop: int | None, device: str | None, seed: int | None, sets: tuple[str, ...],
                          init_from: Path | None, no_resume: bool) -> None:
@@ -41,14 +32,8 @@ def deblur_train_command(dataset: Path, out_dir: Path, config_file: Path | None,
     from .config import load_deblur_config
     from .train import train_deblur
 
-    overrides = list(sets)
-    for key, value in (("optim.epochs", epochs), ("data.batch_size", batch_size), ("optim.lr", lr),
-                       ("data.crop_px", crop), ("device", device), ("seed", seed)):
-        if value is not None:
-            overrides.append(f"{key}={value}")
-    cfg = load_deblur_config(config_file, overrides)
-    if no_resume and (out_dir / "last.pt").exists():
-        raise BadInputError("--no-resume but a previous run's last.pt exists here; choose another --out", where=out_dir)
+    cfg = load_deblur_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop, device, seed))
+    refuse_fresh_run_over(out_dir, no_resume)
     result = train_deblur(dataset, out_dir, cfg, resume=not no_resume, init_from=init_from)
     click.echo(f"{out_dir}: {result.epochs_done} epoch(s), {result.steps} steps; best val SSIM {result.best_val_ssim:.4f} "
                f"at epoch {result.best_epoch} -> {out_dir / 'best.pt'}")
