@@ -112,10 +112,15 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
             round the CoC to integers).
 
     Returns:
-        (left, right), each (B, C, H, W).
+        (left, right), each (B, C, H, W). Each image is rendered on its own (its own layers, boxes and FFT
+        grid), so an image renders the same whatever other images share its batch: a synthesis split over
+        ranks writes the same pairs as one process.
     """
-    levels = quantize_coc(coc_px, valid, step_px)
     B, C, H, W = sharp.shape
+    if B > 1:
+        views = [render_layered(sharp[i : i + 1], coc_px[i : i + 1], valid[i : i + 1], left_psf, step_px) for i in range(B)]
+        return torch.cat([v[0] for v in views]), torch.cat([v[1] for v in views])
+    levels = quantize_coc(coc_px, valid, step_px)
     dt, dev = sharp.dtype, sharp.device
     boxes = _layer_boxes(levels.cpu())
     psfs = {lv: torch.as_tensor(np.ascontiguousarray(left_psf(lv * step_px)), dtype=dt, device=dev) for lv in boxes}
