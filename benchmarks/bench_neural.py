@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from dp5k_common.optics import coc_diameter_px
+from dp5k_testing.torchrun import run_torchrun
 from neural_dp.batch import DPBatch
 from neural_dp.config import TrainConfig
 from neural_dp.model import ModelConfig
@@ -227,13 +228,9 @@ def bench_synth(args: argparse.Namespace) -> list[tuple[str, str, str]]:
         settings = f"{n} frames {W}x{H}, --simulator {args.synth_simulator}"
         rows.append((f"synthesize, 1 process (1 thread) | {settings}", f"{n / one:.2f} frames/s",
                      f"reading the frames {n / read_s:.1f} frames/s"))
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.ranks}", "-m",
-               "dp5k_cli", "-q", "synthesize", str(src), str(Path(tmp) / "ranks"), "--simulator", args.synth_simulator,
-               "--f-number", str(F_NUMBER), "--batch-size", "1"]
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "DP5K_PROGRESS": "0",
-               "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
         t0 = time.perf_counter()
-        subprocess.run(cmd, cwd=ROOT, env=env, check=True, capture_output=True, text=True)
+        run_torchrun(["synthesize", src, Path(tmp) / "ranks", "--simulator", args.synth_simulator, "--f-number", F_NUMBER,
+                      "--batch-size", "1"], nproc=args.ranks, timeout_s=24 * 3600, check=True)
         many = time.perf_counter() - t0
         same = (Path(tmp) / "one" / "dataset.json").read_text() == (Path(tmp) / "ranks" / "dataset.json").read_text()
         rows.append((f"synthesize, torchrun {args.ranks} ranks (1 thread each) | {settings}; wall time incl. "

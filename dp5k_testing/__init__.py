@@ -4,6 +4,7 @@
 * :mod:`.foreign_dp`: a DP renderer and dataset writer that share no code with dp5k (per-pixel scattered
   half discs, its own scenes, its own formula for each effect), so diagnose is checked on data it did not make.
 * :mod:`.procam_synth`: a board or a projector image seen by a pinhole camera (processing unit tests).
+* :mod:`.torchrun`: a ``dp5k`` command run as torchrun ranks on the CPU (sharding tests and benchmarks).
 * :mod:`.sim_session`, :mod:`.truth`: a small simulated raw capture session written with the virtual studio
   (``dp5k process``), and its ground truth seen the way processing sees it.
 

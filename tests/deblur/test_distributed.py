@@ -3,27 +3,21 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
 from dp5k_testing.tiny_dataset import make_tiny_dataset
+from dp5k_testing.torchrun import run_torchrun
 from neural_dp.checkpoint import load_checkpoint
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def _torchrun(ds: Path, out: Path, epochs: int) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "dp5k_cli", "-q",
-           "deblur", "train", str(ds), "--out", str(out), "--device", "cpu", "--epochs", str(epochs), "--crop", "32",
-           "--batch-size", "2", "--set", "data.samples_per_epoch=4", "--set", "model.base_channels=4",
-           "--set", "model.levels=2"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "DP5K_PROGRESS": "0"}
-    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    return run_torchrun(["deblur", "train", ds, "--out", out, "--device", "cpu", "--epochs", epochs, "--crop", "32",
+                         "--batch-size", "2", "--set", "data.samples_per_epoch=4", "--set", "model.base_channels=4",
+                         "--set", "model.levels=2"])
 
 
 @pytest.mark.distributed

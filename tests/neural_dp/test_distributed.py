@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,21 +14,17 @@ import torch
 
 from dp5k_common.dataset import DatasetReader
 from dp5k_testing.tiny_dataset import make_tiny_dataset
+from dp5k_testing.torchrun import run_torchrun
 from neural_dp.checkpoint import load_checkpoint
 from neural_dp.synthesize import SynthConfig, synthesize
 
 from .test_synthesize import _frames
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 def _torchrun(ds: Path, out: Path, epochs: int) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "dp5k_cli", "-q",
-           "train", str(ds), "--out", str(out), "--device", "cpu", "--epochs", str(epochs), "--crop", "32",
-           "--batch-size", "2", "--set", "data.samples_per_epoch=4", "--set", "model.base_channels=4",
-           "--set", "model.levels=2"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "DP5K_PROGRESS": "0"}
-    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    return run_torchrun(["train", ds, "--out", out, "--device", "cpu", "--epochs", epochs, "--crop", "32",
+                         "--batch-size", "2", "--set", "data.samples_per_epoch=4", "--set", "model.base_channels=4",
+                         "--set", "model.levels=2"])
 
 
 @pytest.mark.distributed
@@ -54,10 +48,7 @@ def test_torchrun_two_processes_gloo_train_and_resume(tmp_path: Path) -> None:
 
 
 def _torchrun_synthesize(src: Path, out: Path) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "dp5k_cli", "-q",
-           "synthesize", str(src), str(out), "--simulator", "disk", "--depth-scale", "1000", "--batch-size", "2"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "DP5K_PROGRESS": "0"}
-    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    return run_torchrun(["synthesize", src, out, "--simulator", "disk", "--depth-scale", "1000", "--batch-size", "2"])
 
 
 def _written_per_rank(stdout: str) -> dict[int, int]:

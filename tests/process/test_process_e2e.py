@@ -18,6 +18,7 @@ from dp5k_process.pipeline import ProcessConfig, calibrate_session, decode_camer
 from dp5k_process.refine import refine_stereo
 from dp5k_process.session import load_session
 from dp5k_process.validate import plane_error, validate_depth
+from dp5k_testing.torchrun import run_torchrun
 from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
 from dp5k_testing.truth import half, seen_by_both
 
@@ -191,9 +192,8 @@ def test_torchrun_ranks_process_each_scene_once_and_resume_their_share(processed
     raw3, out = tmp_path / "raw", tmp_path / "out"
     for name in ("a", "b", "c"):
         shutil.copytree(raw / "wall", raw3 / name)
-    cli = ["-m", "dp5k_cli", "-q", "process", str(raw3), str(out)]
-    res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *cli],
-                         capture_output=True, text=True, timeout=600)
+    args = ["process", str(raw3), str(out)]
+    res = run_torchrun(args, timeout_s=600)
     assert res.returncode == 0, res.stdout + res.stderr
     done = dict(re.findall(r"rank (\d) of 2: processed \d scene\(s\) \(([a-c, ]+)\)", res.stdout))
     assert done == {"0": "a, c", "1": "b"}, res.stdout
@@ -210,9 +210,9 @@ def test_torchrun_ranks_process_each_scene_once_and_resume_their_share(processed
     depth = out / "pairs" / "c_cam0_f1.8" / "depth.png"  # rank 0's scene changes: rank 1 leaves it alone
     depth.write_bytes(depth.read_bytes()[:-10] + b"0123456789")
     env = {**os.environ, "WORLD_SIZE": "2"}
-    res = subprocess.run([sys.executable, *cli], capture_output=True, text=True, timeout=600, env={**env, "RANK": "1"})
+    res = subprocess.run([sys.executable, "-m", "dp5k_cli", "-q", *args], capture_output=True, text=True, timeout=600, env={**env, "RANK": "1"})
     assert res.returncode == 0 and "rank 1 of 2: processed 0 scene(s), skipped 1" in res.stdout, res.stdout + res.stderr
-    res = subprocess.run([sys.executable, *cli], capture_output=True, text=True, timeout=600, env={**env, "RANK": "0"})
+    res = subprocess.run([sys.executable, "-m", "dp5k_cli", "-q", *args], capture_output=True, text=True, timeout=600, env={**env, "RANK": "0"})
     assert res.returncode == 0 and "rank 0 of 2: processed 1 scene(s) (c), skipped 1" in res.stdout, res.stdout + res.stderr
 
 
