@@ -37,58 +37,72 @@ def aperture_points(n: int, *, dtype: torch.dtype = torch.float32, device: torch
     return torch.stack([u[keep], v[keep]], dim=1)
 
 
-def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_side: int = 64) -> tuple[Tensor, Tensor]:
+SPLATS_PER_CALL = 1 << 22
+"""Rays splatted per call of the bilinear adjoint (bounds the temporary grid and source copies: ~4M rays x
+(2 + C + 1) floats)."""
+
+
+def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_side: int = 64,
+                    threads: int | None = None) -> tuple[Tensor, Tensor]:
     """Render both DP views by thin-lens ray splatting (module docstring).
+
+    The bilinear splat of a ray is the adjoint of bilinear sampling at its landing point, so the rays are
+    splatted by ATen's ``grid_sampler_2d_backward`` (bilinear, zero padding, ``align_corners=False``: grid
+    -1..1 spans the pixels' outer edges, so pixel x's centre is at (2x + 1) / W - 1), which accumulates in compiled code; rays are split into ``threads``
+    independent accumulators, one per batch slot of the call, so the call's threads never write the same
+    plane, and the slots are summed at the end.
 
     Args:
         sharp: (B, C, H, W) linear image.
         coc_px: (B, 1, H, W) signed CoC diameter in px (invalid pixels are treated as in focus).
         valid: (B, 1, H, W) bool.
         max_points_side: cap on the aperture grid's side (memory/time bound for huge CoCs).
+        threads: accumulators per view (default: torch's intra-op thread count).
 
     Returns:
         (left, right), each (B, C, H, W).
     """
     B, C, H, W = sharp.shape
     dev, dt = sharp.device, sharp.dtype
-    c = torch.where(valid, coc_px, torch.zeros_like(coc_px)).reshape(-1)
+    slots = max(1, threads or torch.get_num_threads())
+    c_all = torch.where(valid, coc_px, torch.zeros_like(coc_px))
     # Each pixel gets an n x n aperture grid with n >= |C| (even), so its rays land <= 1 px apart.
-    n_pix = torch.clamp(torch.ceil(c.abs()), 2, max_points_side).to(torch.int64)
-    n_pix = n_pix + n_pix % 2
+    n_all = torch.clamp(torch.ceil(c_all.abs()), 2, max_points_side).to(torch.int64)
+    n_all = n_all + n_all % 2
+    gx_per_px, gy_per_px = 2.0 / W, 2.0 / H  # grid units per px (align_corners=False)
     yy, xx = torch.meshgrid(torch.arange(H, dtype=dt, device=dev), torch.arange(W, dtype=dt, device=dev), indexing="ij")
-    xx = xx.reshape(1, H * W).expand(B, H * W).reshape(-1)
-    yy = yy.reshape(1, H * W).expand(B, H * W).reshape(-1)
-    base = (torch.arange(B, device=dev) * (H * W)).view(B, 1).expand(B, H * W).reshape(-1)
-    src_all = torch.cat([sharp, torch.ones_like(sharp[:, :1])], dim=1).permute(0, 2, 3, 1).reshape(B * H * W, C + 1)
-    flat_l = torch.zeros(B * H * W, C + 1, dtype=dt, device=dev)
-    flat_r = torch.zeros_like(flat_l)
-    for n in torch.unique(n_pix).tolist():
-        sel = (n_pix == n).nonzero().squeeze(1)
-        pts = aperture_points(int(n), dtype=dt, device=dev)
-        src = src_all[sel] / pts.shape[0]
-        half = (c[sel] / 2)[None]
-        px, py, pbase = xx[sel][None], yy[sel][None], base[sel][None]
-        npx = sel.numel()
-        chunk = max(1, (1 << 22) // (4 * npx))  # bounded memory: <= ~4M splats per index_add
-        for target, side in ((flat_l, pts[pts[:, 0] < 0]), (flat_r, pts[pts[:, 0] > 0])):
-            for k in range(0, side.shape[0], chunk):
-                x = px + half * side[k : k + chunk, 0:1]  # (Pc, npx)
-                y = py + half * side[k : k + chunk, 1:2]
-                x0, y0 = torch.floor(x), torch.floor(y)
-                fx, fy = x - x0, y - y0
-                idx_parts, w_parts = [], []
-                for dy, dx, w in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
-                    xi, yi = x0 + dx, y0 + dy
-                    inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-                    idx_parts.append((pbase + (yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)).to(torch.int64)).reshape(-1))
-                    w_parts.append((w * inside).reshape(-1))
-                idx = torch.cat(idx_parts)
-                weight = torch.cat(w_parts)
-                target.index_add_(0, idx, src.repeat(idx.numel() // npx, 1) * weight[:, None])
-    left = flat_l.reshape(B, H, W, C + 1).permute(0, 3, 1, 2)
-    right = flat_r.reshape(B, H, W, C + 1).permute(0, 3, 1, 2)
-    cover = (left[:, C:] + right[:, C:]).clamp_min(1e-8)
-    return left[:, :C] / cover, right[:, :C] / cover
+    gx_pix, gy_pix = ((xx + 0.5) * gx_per_px - 1).reshape(-1), ((yy + 0.5) * gy_per_px - 1).reshape(-1)
+    lefts, rights = [], []
+    for b in range(B):
+        c, n_pix = c_all[b].reshape(-1), n_all[b].reshape(-1)
+        src_all = torch.cat([sharp[b], torch.ones_like(sharp[b, :1])], 0).reshape(C + 1, H * W)
+        acc = torch.zeros(2, slots, C + 1, H, W, dtype=dt, device=dev)  # (view, slot, C + coverage, H, W)
+        for n in torch.unique(n_pix).tolist():
+            sel = (n_pix == n).nonzero().squeeze(1)
+            pts = aperture_points(int(n), dtype=dt, device=dev)
+            src = src_all[:, sel] / pts.shape[0]  # (C+1, npx): each ray carries 1/N_ap of its pixel
+            half_gx, half_gy = (c[sel] / 2 * gx_per_px)[None, None], (c[sel] / 2 * gy_per_px)[None, None]
+            gx, gy = gx_pix[sel][None, None], gy_pix[sel][None, None]
+            npx = sel.numel()
+            per_slot = max(1, SPLATS_PER_CALL // (npx * slots))
+            for view, side in enumerate((pts[pts[:, 0] < 0], pts[pts[:, 0] > 0])):
+                for k in range(0, side.shape[0], per_slot * slots):
+                    block = side[k : k + per_slot * slots]
+                    used = min(slots, block.shape[0])
+                    groups = block[: block.shape[0] // used * used].reshape(used, -1, 2)
+                    rest = block[groups.shape[0] * groups.shape[1] :]
+                    for grp in (groups, rest[None]) if rest.numel() else (groups,):
+                        u, v = grp[..., 0:1], grp[..., 1:2]  # (slots, P, 1)
+                        grid = torch.stack([gx + half_gx * u, gy + half_gy * v], dim=-1)  # (slots, P, npx, 2)
+                        rays = src[None, :, None, :].expand(grp.shape[0], C + 1, grp.shape[1], npx)
+                        target = acc[view, : grp.shape[0]]
+                        splat, _ = torch.ops.aten.grid_sampler_2d_backward(rays, target, grid, 0, 0, False, [True, False])
+                        target += splat
+        left, right = acc[0].sum(0), acc[1].sum(0)
+        cover = (left[C:] + right[C:]).clamp_min(1e-8)
+        lefts.append(left[:C] / cover)
+        rights.append(right[:C] / cover)
+    return torch.stack(lefts), torch.stack(rights)
 
 
 class RayTracingSimulator(DPSimulator):

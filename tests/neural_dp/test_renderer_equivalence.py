@@ -496,6 +496,25 @@ def test_raytrace_equals_reference_with_capped_aperture_grid() -> None:
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_raytrace_equals_reference_whatever_the_accumulator_count(threads: int) -> None:
+    """Rays are split over per-thread accumulators; the sum must not depend on how many."""
+    b = _scene(1, 24, 30, -9.0, 11.0, torch.float64, seed=4)
+    left, right = render_raytrace(b.sharp, b.coc_px, b.valid, threads=threads)
+    ref_l, ref_r = _reference_render_raytrace(b.sharp, b.coc_px, b.valid)
+    torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
+    torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
+
+
+def test_raytrace_equals_reference_on_a_one_pixel_wide_image() -> None:
+    """A 1-px axis: rays landing beyond it are lost, as in the reference (no clamping onto the only column)."""
+    b = _scene(1, 20, 1, -6.0, 7.0, torch.float64, seed=5)
+    left, right = render_raytrace(b.sharp, b.coc_px, b.valid)
+    ref_l, ref_r = _reference_render_raytrace(b.sharp, b.coc_px, b.valid)
+    torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
+    torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
+
+
 # ---- base model ---------------------------------------------------------------------------------------------
 
 BASE_PATHS = {"auto": {}, "fft_tiles_only": {"DIRECT_MAX_PX": 0, **SMALL_TILES}}
