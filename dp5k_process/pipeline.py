@@ -31,12 +31,12 @@ from dp5k_common.errors import BadInputError, StageError
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.rawfile import DualPixelFrames, read_dual_pixel, read_frame
 
-from .filters import FilterConfig, backproject, filter_depth, recursive_fill
+from .filters import FilterConfig, filter_depth, recursive_fill
 from .focus import FocusConfig, focus_distance
 from .graycode import GrayCodeConfig, GrayDecode, decode_graycode
-from .projector import ProjectorCalibConfig, calibrate_projector, mixed_codes, procam_depth
+from .projector import ProjectorCalibConfig, calibrate_projector, correspondence_subset, mixed_codes, procam_depth
 from .rawimage import dp_views, resize_image
-from .refine import RefineConfig, ViewCache, cached_view, refine_stereo
+from .refine import RefineConfig, ViewCache, cached_centroids, cached_view, refine_stereo
 from .session import Session, check_size
 from .triangulate import (CodeView, TriangulationConfig, depth_from_match, match_in_other,
                           normalised_rays)
@@ -192,6 +192,40 @@ def fill_steps_for(view0: CodeView, fill_steps: int, n_scales: int) -> int:
     return int(min(n_scales, fill_steps + extra))
 
 
+def projector_correspondences(views: list[CodeView], depths: list[NDArray[np.float32]], rays: NDArray[np.float32],
+                               cfg: ProjectorCalibConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The stereo points (N, 3) metres and their full-scale projector pixels (N, 2) that
+    :func:`~.projector.calibrate_projector` fits, from every scale's filtered depth.
+
+    :func:`~.projector.calibrate_projector` keeps the finite correspondences of all scales (scale by scale, each
+    row-major: those of ``backproject`` with their ``to_full`` codes) and then a seeded subset of them
+    (:func:`~.projector.correspondence_subset`). The same subset is drawn here from their count alone and only its
+    points are built, so that fit sees the same correspondences in the same order (``calibrate_projector`` does
+    not subsample again: it gets at most ``max_points``), without the points of every valid pixel (20 M at
+    paper size)."""
+    rays_ok = np.isfinite(rays).all(-1)
+    idx = []
+    for v, d in zip(views, depths):  # finite point (z and ray) and finite projector pixel (u, v)
+        idx.append(np.flatnonzero(np.isfinite(d) & rays_ok & np.isfinite(v.u) & np.isfinite(v.v)))
+    counts = np.array([len(i) for i in idx])
+    sub = correspondence_subset(int(counts.sum()), cfg)
+    starts = np.r_[0, np.cumsum(counts)]
+    pts, codes = [], []
+    for k, (v, d) in enumerate(zip(views, depths)):
+        sel = idx[k] if sub is None else idx[k][sub[(sub >= starts[k]) & (sub < starts[k + 1])] - starts[k]]
+        z = d.reshape(-1)[sel].astype(np.float64)
+        r = rays.reshape(-1, 2)[sel].astype(np.float64)
+        pts.append(np.column_stack([r[:, 0] * z, r[:, 1] * z, z]))
+        codes.append(np.column_stack([v.to_full(v.u.reshape(-1)[sel]), v.to_full(v.v.reshape(-1)[sel])]))
+    X, x = np.concatenate(pts), np.concatenate(codes).astype(np.float64)
+    if sub is not None:  # back into the subset's (random) order
+        order = np.concatenate([np.flatnonzero((sub >= starts[k]) & (sub < starts[k + 1])) for k in range(len(idx))])
+        inv = np.empty_like(order)
+        inv[order] = np.arange(len(order))
+        X, x = X[inv], x[inv]
+    return X, x
+
+
 def depth_for_camera(
     decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
     views_cache: ViewCache | None = None,
@@ -220,7 +254,7 @@ def depth_for_camera(
     fx = float(cal[ref].K[0, 0])
     n_scales = decs[ref].cfg.n_scales
     coarsest = n_scales - 1
-    coarse_other = view(other, coarsest)
+    coarse_other = cached_centroids(decs, other, coarsest, cache)  # only its centroids are used
     info: dict[str, Any] = {"per_scale_coverage": [], "per_scale_coverage_stereo": []}
     n_steps = fill_steps_for(view(ref, 0), cfg.filt.fill_steps, n_scales)
     info["fill_scales"] = [f"1/{1 << s}" for s in range(n_steps)]
@@ -233,12 +267,8 @@ def depth_for_camera(
     filtered = [filter_depth(d, rays, cfg.filt) for d in stereo]
     model = None
     if cfg.projector is not None:  # where the other camera cannot see: reference camera + projector
-        pts, codes = [], []
-        for v, d in zip(views, filtered):
-            X, m = backproject(d, rays)
-            pts.append(X)
-            codes.append(np.column_stack([v.to_full(v.u)[m], v.to_full(v.v)[m]]))
-        model = calibrate_projector(np.concatenate(pts), np.concatenate(codes), decs[ref].scale_size(0), cfg.projector)
+        X, x = projector_correspondences(views, filtered, rays, cfg.projector)
+        model = calibrate_projector(X, x, decs[ref].scale_size(0), cfg.projector)
     info["projector_rms_px"] = None if model is None else model.rms_px
     info["projector_points"] = 0 if model is None else model.n_points
     info["projector_position_sd_mm"] = None if model is None else model.position_sd_m * 1000.0

@@ -94,6 +94,14 @@ def _dlt(X: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.linalg.inv(Tx) @ P @ TX
 
 
+def correspondence_subset(n: int, cfg: ProjectorCalibConfig = ProjectorCalibConfig()) -> NDArray[np.int64] | None:
+    """The seeded subset (indices, in drawing order) of ``n`` correspondences that :func:`calibrate_projector`
+    fits; None when it keeps them all (``n <= cfg.max_points``)."""
+    if n <= cfg.max_points:
+        return None
+    return np.random.default_rng(cfg.seed).choice(n, cfg.max_points, replace=False)
+
+
 def calibrate_projector(points_m: NDArray[np.float64], proj_px: NDArray[np.float64], proj_size: tuple[int, int],
                         cfg: ProjectorCalibConfig = ProjectorCalibConfig()) -> ProjectorModel | None:
     """Projector pinhole model from stereo points and their projector pixels; None if they cannot fix it.
@@ -107,8 +115,8 @@ def calibrate_projector(points_m: NDArray[np.float64], proj_px: NDArray[np.float
     X, x = points_m[ok].astype(np.float64), proj_px[ok].astype(np.float64)
     if len(X) < cfg.min_points:
         return None
-    if len(X) > cfg.max_points:
-        idx = np.random.default_rng(cfg.seed).choice(len(X), cfg.max_points, replace=False)
+    idx = correspondence_subset(len(X), cfg)
+    if idx is not None:
         X, x = X[idx], x[idx]
     sv = np.linalg.svd(X - X.mean(0), compute_uv=False)
     if sv[2] < cfg.min_flatness * sv[0]:

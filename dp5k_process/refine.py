@@ -50,7 +50,9 @@ from calib.calibrate import CameraCalibration, StereoCalibration, rotation_angle
 
 from .graycode import GrayDecode
 from .triangulate import (
+    CentroidMap,
     CodeView,
+    centroid_map,
     TriangulationConfig,
     code_view,
     depth_from_match,
@@ -60,8 +62,10 @@ from .triangulate import (
 
 log = logging.getLogger(__name__)
 
-ViewCache = dict[tuple[str, int], CodeView]
-"""(camera, scale) -> that camera's code view at that scale, shared by the steps of one scene."""
+ViewCache = dict[tuple[str, int], CodeView | CentroidMap]
+"""(camera, scale) -> that camera's code view at that scale, shared by the steps of one scene; (camera +
+``CENTROIDS_KEY``, scale) -> its centroid map where only that was needed (:func:`cached_centroids`)."""
+CENTROIDS_KEY = "/centroids"
 
 
 def cached_view(decs: dict[str, GrayDecode], cam: str, scale: int, tri: TriangulationConfig,
@@ -72,8 +76,27 @@ def cached_view(decs: dict[str, GrayDecode], cam: str, scale: int, tri: Triangul
     if cache is None:
         return code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
     if (cam, scale) not in cache:
-        cache[(cam, scale)] = code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
-    return cache[(cam, scale)]
+        cm = cache.pop((cam + CENTROIDS_KEY, scale), None)
+        cache[(cam, scale)] = code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale,
+                                        centroids=cm)
+    view = cache[(cam, scale)]
+    assert isinstance(view, CodeView)
+    return view
+
+
+def cached_centroids(decs: dict[str, GrayDecode], cam: str, scale: int, cache: ViewCache | None
+                     ) -> CodeView | CentroidMap:
+    """``cam``'s bucket centroids at ``scale`` (what :func:`~.triangulate.match_in_other` uses of its ``coarse``
+    view): the cached code view when there is one, else a :class:`CentroidMap`, taken from ``cache`` or computed
+    and stored there; a later :func:`cached_view` of the same camera and scale reuses it."""
+    if cache is None:
+        return centroid_map(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), scale)
+    if (cam, scale) in cache:
+        return cache[(cam, scale)]
+    key = (cam + CENTROIDS_KEY, scale)
+    if key not in cache:
+        cache[key] = centroid_map(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), scale)
+    return cache[key]
 
 
 @dataclass(frozen=True)

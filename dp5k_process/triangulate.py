@@ -63,6 +63,23 @@ def smooth_code(code: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: flo
     return out
 
 
+def smooth_codes(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], sigma_px: float,
+                 min_support: float = 0.3) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """:func:`smooth_code` of the column and the row code of one validity mask, its denominator (the blurred
+    mask) computed once for both (bit-identical to two :func:`smooth_code` calls)."""
+    den = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_CONSTANT)
+    undefined = ~(den >= min_support)
+    out = []
+    for code in (col, row):
+        num = cv2.GaussianBlur(np.where(valid, code, 0).astype(np.float32), (0, 0), sigma_px,
+                               borderType=cv2.BORDER_CONSTANT)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            np.divide(num, den, out=num)
+        num[undefined] = np.nan
+        out.append(num)
+    return out[0], out[1]
+
+
 def bucket_centroids_px(
     col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_], proj_size: tuple[int, int]
 ) -> tuple[NDArray[np.float32], int]:
@@ -73,7 +90,7 @@ def bucket_centroids_px(
     """
     Wp, Hp = proj_size
     ys, xs = np.nonzero(valid)
-    idx = row[ys, xs].astype(np.int64) * Wp + col[ys, xs]
+    idx = row[valid].astype(np.int64) * Wp + col[valid]  # the same pixels, in the same (row-major) order
     n = np.bincount(idx, minlength=Wp * Hp).astype(np.float32)
     cen = np.empty((Hp, Wp, 2), np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -86,18 +103,28 @@ def _remap(img: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float
     return cv2.remap(img, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def _centroid_samplers(cen: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """A NaN-holed centroid map as the two images :func:`sample_centroids` remaps: (centroids with 0 at the
+    holes, 1 where a centroid exists)."""
+    ok = np.isfinite(cen[..., 0])
+    return np.where(ok[..., None], cen, 0).astype(np.float32), ok.astype(np.float32)
+
+
+def _sample_centroid_images(data: NDArray[np.float32], okf: NDArray[np.float32], u: NDArray[np.float32],
+                            v: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    mu, mv = np.nan_to_num(u, nan=-10).astype(np.float32), np.nan_to_num(v, nan=-10).astype(np.float32)
+    num = _remap(data, mu, mv)
+    den = _remap(okf, mu, mv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pts = num / den[..., None]
+    return pts, den
+
+
 def sample_centroids(cen: NDArray[np.float32], u: NDArray[np.float32], v: NDArray[np.float32]
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Bilinear sample of a NaN-holed centroid map at projector coordinates (u, v), weights renormalised over
     the valid neighbours. Returns (points (..., 2), weight (...)); weight 0 = no neighbour."""
-    ok = np.isfinite(cen[..., 0])
-    data = np.where(ok[..., None], cen, 0).astype(np.float32)
-    mu, mv = np.nan_to_num(u, nan=-10).astype(np.float32), np.nan_to_num(v, nan=-10).astype(np.float32)
-    num = _remap(data, mu, mv)
-    den = _remap(ok.astype(np.float32), mu, mv)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pts = num / den[..., None]
-    return pts, den
+    return _sample_centroid_images(*_centroid_samplers(cen), u, v)
 
 
 def midpoint_triangulate(
@@ -149,7 +176,28 @@ def midpoint_depth(
 
     Returns:
         z (N,) metres in the reference frame (NaN behind a camera), gap (N,) metres between the rays.
+
+    Computed ``TRIANGULATE_CHUNK`` rays at a time (each ray on its own, so the chunking changes no bit) so that the
+    twenty float64 temporaries stay in the CPU caches.
     """
+    xa, ya, xb, yb = (np.asarray(x, np.float64) for x in (xa, ya, xb, yb))
+    z = np.empty(xa.shape, np.float64)
+    gap = np.empty(xa.shape, np.float64)
+    for i in range(0, xa.size, TRIANGULATE_CHUNK):
+        c = slice(i, i + TRIANGULATE_CHUNK)
+        z[c], gap[c] = _midpoint_depth_chunk(xa[c], ya[c], xb[c], yb[c], R, T)
+    return z, gap
+
+
+TRIANGULATE_CHUNK = 32768
+"""Rays per chunk of :func:`midpoint_depth` and :func:`depth_from_match`."""
+
+
+def _midpoint_depth_chunk(
+    xa: NDArray[np.float64], ya: NDArray[np.float64], xb: NDArray[np.float64], yb: NDArray[np.float64],
+    R: NDArray[np.float64], T: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`midpoint_depth` of one chunk of rays."""
     C = -R.T @ np.asarray(T, np.float64).ravel()  # other camera centre in the reference frame
     bx = R[0, 0] * xb + R[1, 0] * yb + R[2, 0]  # b = R^T (xb, yb, 1)
     by = R[0, 1] * xb + R[1, 1] * yb + R[2, 1]
@@ -189,8 +237,47 @@ class TriangulationConfig:
     sigma_factor: float = 0.8
 
 
+class _ScaleCoordinates:
+    """Projector coordinates of a scale ``2^-scale`` <-> full-scale projector coordinates."""
+
+    scale: int
+
+    def to_full(self, u: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Smoothed scale-s code -> projector coordinate at scale 1 (pixel centres at integers).
+
+        The mean of ``x >> s`` over a region is ``x / 2^s - (2^s - 1) / 2^(s+1)``."""
+        k = float(1 << self.scale)
+        return (u + (k - 1) / (2 * k)) * k
+
+    def from_full(self, x: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Inverse of :meth:`to_full`."""
+        k = float(1 << self.scale)
+        return x / k - (k - 1) / (2 * k)
+
+
 @dataclass
-class CodeView:
+class CentroidMap(_ScaleCoordinates):
+    """The part of a :class:`CodeView` that :func:`match_in_other` uses of its ``coarse`` view: the bucket
+    centroids, the footprint and the scale (no smoothed codes or gradients, which cost most of a view).
+
+    Attributes: as :class:`CodeView`'s of the same names.
+    """
+
+    centroids: NDArray[np.float32]
+    footprint_px: float
+    scale: int = 0
+
+
+def centroid_map(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_],
+                 proj_size: tuple[int, int], scale: int = 0) -> CentroidMap:
+    """Bucket centroids and footprint of one camera at projector scale ``2^-scale`` (those of :func:`code_view`)."""
+    cen, n_codes = bucket_centroids_px(col, row, valid, proj_size)
+    fp = float(np.sqrt(valid.sum() / n_codes)) if n_codes else 1.0  # camera px per projector px (side)
+    return CentroidMap(cen, fp, scale)
+
+
+@dataclass
+class CodeView(_ScaleCoordinates):
     """One camera's codes at one scale, prepared for matching.
 
     Attributes:
@@ -210,27 +297,16 @@ class CodeView:
     footprint_px: float
     scale: int = 0
 
-    def to_full(self, u: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Smoothed scale-s code -> projector coordinate at scale 1 (pixel centres at integers).
-
-        The mean of ``x >> s`` over a region is ``x / 2^s - (2^s - 1) / 2^(s+1)``."""
-        k = float(1 << self.scale)
-        return (u + (k - 1) / (2 * k)) * k
-
-    def from_full(self, x: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Inverse of :meth:`to_full`."""
-        k = float(1 << self.scale)
-        return x / k - (k - 1) / (2 * k)
-
 
 def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.bool_],
-              proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig(), scale: int = 0) -> CodeView:
-    """Smooth codes, their gradients and bucket centroids of one camera at projector scale ``2^-scale``."""
-    cen, n_codes = bucket_centroids_px(col, row, valid, proj_size)
-    fp = float(np.sqrt(valid.sum() / n_codes)) if n_codes else 1.0  # camera px per projector px (side)
+              proj_size: tuple[int, int], cfg: TriangulationConfig = TriangulationConfig(), scale: int = 0,
+              centroids: CentroidMap | None = None) -> CodeView:
+    """Smooth codes, their gradients and bucket centroids of one camera at projector scale ``2^-scale``
+    (``centroids``: this camera's :func:`centroid_map` at this scale, when already computed)."""
+    cm = centroid_map(col, row, valid, proj_size, scale) if centroids is None else centroids
+    cen, fp = cm.centroids, cm.footprint_px
     sigma = max(0.7, cfg.sigma_factor * fp)
-    u = smooth_code(col, valid, sigma)
-    v = smooth_code(row, valid, sigma)
+    u, v = smooth_codes(col, row, valid, sigma)
     g = []
     for c in (u, v):
         z = np.nan_to_num(c)
@@ -239,36 +315,62 @@ def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.
     return CodeView(u, v, valid, cen, np.stack(g, -1), fp, scale)
 
 
+MATCH_BLOCK_PX = 65536
+"""Reference pixels per block of :func:`match_in_other` (whole rows): its per-pixel temporaries then stay in the
+CPU caches instead of making a dozen full-image arrays per Newton step."""
+
+
 def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig(),
-                   coarse: CodeView | None = None) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+                   coarse: CodeView | CentroidMap | None = None, block_px: int = MATCH_BLOCK_PX
+                   ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """For every valid reference pixel, the sub-pixel point of the other camera with the same projector code.
 
     Start at the other camera's bucket centroid sampled at the reference's smoothed code, then Newton steps on
     the other camera's smoothed code maps: ``q <- q + J^-1 ((u, v)_ref - (u, v)_other(q))``. Where camera pixels
     are larger than this scale's projector pixels the centroid map is sparse; ``coarse`` (the other camera at a
-    coarser scale, whose map is dense) then gives the start.
+    coarser scale, whose map is dense; only its centroids are used) then gives the start.
+
+    Each reference pixel's match depends only on its own codes and the other camera's maps, so the reference
+    grid is processed in blocks of whole rows (``block_px`` pixels or more; the result does not depend on it).
 
     Returns:
         q (H, W, 2) pixel coordinates in the other camera (NaN where unmatched), ok (H, W) bool.
     """
-    if coarse is None:
-        q, w = sample_centroids(other.centroids, ref.u, ref.v)
-    else:
-        q, w = sample_centroids(coarse.centroids, coarse.from_full(ref.to_full(ref.u)),
-                                coarse.from_full(ref.to_full(ref.v)))
-    ok = ref.valid & np.isfinite(ref.u) & np.isfinite(ref.v) & (w > 0) & np.isfinite(q[..., 0])
+    H, W = ref.valid.shape
+    cen_data, cen_ok = _centroid_samplers((other if coarse is None else coarse).centroids)
     # the other camera's code u, v and its validity in one 3-channel image: one remap per step samples all three
     # (each channel with the same bilinear weights as a remap of its own)
     codes_o = np.dstack([np.nan_to_num(other.u), np.nan_to_num(other.v),
                          (np.isfinite(other.u) & np.isfinite(other.v)).astype(np.float32)])
-    ur, vr = np.nan_to_num(ref.u), np.nan_to_num(ref.v)
     step_max = 2.0 * max(1.0, other.footprint_px, 0.0 if coarse is None else coarse.footprint_px)
+    q = np.empty((H, W, 2), np.float32)
+    ok = np.empty((H, W), bool)
+    rows = max(1, block_px // max(W, 1))
+    for y0 in range(0, H, rows):
+        b = slice(y0, min(H, y0 + rows))
+        u, v = ref.u[b], ref.v[b]
+        if coarse is None:
+            qb, w = _sample_centroid_images(cen_data, cen_ok, u, v)
+        else:
+            qb, w = _sample_centroid_images(cen_data, cen_ok, coarse.from_full(ref.to_full(u)),
+                                            coarse.from_full(ref.to_full(v)))
+        okb = ref.valid[b] & np.isfinite(u) & np.isfinite(v) & (w > 0) & np.isfinite(qb[..., 0])
+        q[b], ok[b] = _newton_block(qb, okb, np.nan_to_num(u), np.nan_to_num(v), codes_o, other.grads, step_max, cfg)
+    return q, ok
+
+
+def _newton_block(q: NDArray[np.float32], ok: NDArray[np.bool_], ur: NDArray[np.float32], vr: NDArray[np.float32],
+                  codes_o: NDArray[np.float32], grads_o: NDArray[np.float32], step_max: float,
+                  cfg: TriangulationConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """:func:`match_in_other`'s Newton steps and residual test for one block of reference pixels: start ``q``
+    (..., 2), where to match ``ok``, the reference codes ``ur, vr`` (0 where invalid), the other camera's
+    3-channel codes image and its gradients."""
     qx, qy = np.ascontiguousarray(q[..., 0]), np.ascontiguousarray(q[..., 1])
     off = np.float32(-10)  # a map coordinate outside the image: samples 0 (invalid)
     for _ in range(max(1, cfg.newton_iters)):
         mx, my = np.where(ok, qx, off), np.where(ok, qy, off)
         sampled = _remap(codes_o, mx, my)
-        gr = _remap(other.grads, mx, my)
+        gr = _remap(grads_o, mx, my)
         du = ur - sampled[..., 0]
         dv = vr - sampled[..., 1]
         a, b, c, d = gr[..., 0], gr[..., 1], gr[..., 2], gr[..., 3]
@@ -304,13 +406,18 @@ def depth_from_match(
     """
     H, W = ok.shape
     depth = np.full((H, W), np.nan, np.float32)
-    n = int(ok.sum())
-    if n == 0:
+    idx = np.flatnonzero(ok)  # row-major, as ``depth[ok]``
+    if idx.size == 0:
         return depth
-    qn = undistort_px(q_px[ok], other)
-    a = ref_rays[ok].astype(np.float64)
-    z, gap = midpoint_depth(a[:, 0], a[:, 1], qn[:, 0], qn[:, 1], R, T)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        good = np.isfinite(z) & (z > 0) & (gap / z * ref_fx_px <= cfg.max_gap_px)
-    depth[ok] = np.where(good, z, np.nan)
+    q_flat, rays_flat, out = q_px.reshape(-1, 2), ref_rays.reshape(-1, 2), depth.reshape(-1)
+    z_ok = np.empty(idx.size, np.float32)
+    for i in range(0, idx.size, TRIANGULATE_CHUNK):  # each pixel on its own: the chunks change no bit
+        c = slice(i, i + TRIANGULATE_CHUNK)
+        qn = undistort_px(q_flat[idx[c]], other)
+        a = rays_flat[idx[c]].astype(np.float64)
+        z, gap = _midpoint_depth_chunk(a[:, 0], a[:, 1], qn[:, 0], qn[:, 1], R, T)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            good = np.isfinite(z) & (z > 0) & (gap / z * ref_fx_px <= cfg.max_gap_px)
+        z_ok[c] = np.where(good, z, np.nan)
+    out[idx] = z_ok
     return depth
