@@ -2,7 +2,7 @@
 ``dp5k_testing/foreign_dp.py`` (a renderer that shares no code with dp5k).
 
 For each pair of effects it writes a dataset, runs diagnose (base model, the CLI's fit-pair rule) and prints
-one row: planted, the causes named in order with each step's held-out PSNR gain (95 % CI over pairs) and the
+one row: planted, the causes named in order with the held-out PSNR gain each adds given the other causes and its step gain (95 % CI over pairs) and the
 fitted parameters that compare with the planted ones, the cumulative gain, the time, and beside every row
 the date, the machine's load and the git commit. The floor each step is measured against is the model of the
 steps before it, on the same held-out pairs (step 1: the fitted base model).
@@ -57,7 +57,9 @@ def step_text(c: dict) -> str:
     iv = c.get("param_intervals", {})
     par = ", ".join(f"{k} {c['params'][k]:.3g}" + (f" [{iv[k][0]:.3g}, {iv[k][1]:.3g}]" if k in iv else "") for k in keys if k in c["params"])
     lo, hi = c["gain_ci_db"]
-    return f"`{c['name']}` {c['gain_db']:+.2f} [{lo:+.2f}, {hi:+.2f}] dB ({par})"
+    slo, shi = c["step_gain_ci_db"]
+    return (f"`{c['name']}` {c['gain_db']:+.2f} [{lo:+.2f}, {hi:+.2f}] dB given the others, step {c['step_gain_db']:+.2f} "
+            f"[{slo:+.2f}, {shi:+.2f}] ({par})")
 
 
 def main() -> None:
@@ -75,7 +77,7 @@ def main() -> None:
     work = a.out or Path(tempfile.mkdtemp(prefix="dp5k-multi-"))
     os.environ.setdefault("DP5K_PROGRESS", "0")
     print(f"{a.renderer}, {W} x {H}, {scenes} scenes, seed {a.seed}, strength {a.strength:g}")
-    print("| planted | named in order: step gain [95 % CI] (fitted) | cumulative dB | s | date, load (1 min), commit |")
+    print("| planted | named in order: gain given the others and step gain [95 % CI] (fitted) | cumulative dB | s | date, load (1 min), commit |")
     print("|---|---|---|---|---|")
     for case in a.cases.split(","):
         root = work / f"{a.renderer}_{case}_{W}x{H}_seed{a.seed}"

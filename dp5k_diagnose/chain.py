@@ -3,7 +3,16 @@
 Step k tests the effects not yet chosen against the model of steps 1..k-1 (:func:`detect.test_effects` with
 that model as the reference), extends it with the strongest detected structural effect (after the nested
 test of the two leading ones), refits every chosen component together, and repeats until no structural
-effect is detected or :attr:`ChainConfig.max_causes` are chosen. ``noise`` is a measurement, not a
+effect is detected or :attr:`ChainConfig.max_causes` are chosen.
+
+Greedy forward selection can take a look-alike first when two effects hide each other (a bright rim and a
+focus offset each make the base model's fit worse alone), so with two or more causes an exchange step
+follows (:func:`exchange_causes`, "floating" selection): every chosen cause's slot is re-selected given the
+others (the model without it, refitted, is tested against every effect); a cause nothing detected replaces is
+dropped, a cause the data prefers another effect for is replaced. When the set changed, the causes are
+ordered by what each explains alone against the base model and the models of the steps are refitted.
+
+``noise`` is a measurement, not a
 structural effect: a simulator's output is an expectation, so noise cannot raise PSNR; it is measured
 against the final model and, when its excess over the nominal sensor is significant, named after every
 structural effect.
@@ -13,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 from dataclasses import dataclass, field
 
 from dp5k_common.effects import EFFECT_NAMES
@@ -21,7 +31,8 @@ from neural_dp.simulators.base.components import fittable_names
 from neural_dp.simulators.base.fit import parameter_intervals
 
 from .data import Sample
-from .detect import PSF_NUISANCE, DetectConfig, Discrimination, Finding, discriminate, keep_rim_if_better, masked_mse, test_effects
+from .detect import (PSF_NUISANCE, DetectConfig, Discrimination, Finding, clustered_delta, discriminate, effect_test, explanation,
+                     fit_effect, keep_rim_if_better, masked_mse, systematic_sse, test_effects, tile_mse)
 
 log = logging.getLogger(__name__)
 
@@ -36,11 +47,14 @@ class ChainConfig:
             exceeded this (share of the systematic error): one that made the model worse on the detection
             pairs is not a candidate once the model is better. Its ``-inf`` re-tests every effect.
         joint_lm_iters: Levenberg-Marquardt iterations of the joint refit of all chosen components.
+        exchange_passes: passes of the exchange step over the chosen causes (0: none); a pass that changes
+            nothing ends it.
     """
 
     max_causes: int = 4
     retest_min_effect: float = 0.0
     joint_lm_iters: int = 2
+    exchange_passes: int = 2
 
 
 @dataclass
@@ -54,6 +68,33 @@ class ChainStep:
 
 
 @dataclass
+class Exchange:
+    """One chosen cause's slot re-selected given the other causes (:func:`exchange_causes`).
+
+    Attributes:
+        slot: the cause re-tested.
+        action: "kept" (it is still the strongest detected effect given the others), "dropped" (nothing is
+            detected without it) or "replaced" (the data prefers ``by``).
+        by: the effect chosen for the slot ("" when dropped).
+        effect_size, p_value: the chosen effect's finding against the model without the slot (the slot's
+            own when dropped: what it adds to the others).
+        findings: every effect tested for the slot.
+    """
+
+    slot: str
+    action: str
+    by: str
+    effect_size: float
+    p_value: float
+    findings: list[Finding] = field(default_factory=list, repr=False)
+
+    def to_json(self) -> dict[str, object]:
+        return {"slot": self.slot, "action": self.action, "by": self.by or None, "effect_size": float(self.effect_size),
+                "p_value": float(self.p_value),
+                "tests": [{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in self.findings]}
+
+
+@dataclass
 class Chain:
     """The result of the forward selection.
 
@@ -63,6 +104,11 @@ class Chain:
         first_discrimination: the nested test of step 1.
         noise: the noise finding measured against the final structural model (None when not tested).
         step_findings: every step's findings (step 1 first), for the report.
+        exchanges: the exchange step's slot tests, in the order run (empty when it did not run).
+        forward_order: the causes as the forward selection chose them, before the exchange step.
+        without: per step, the final model without that step's cause, the others refitted together (the
+            fitted base model for a single cause): what the cause adds given every other one is measured
+            against it.
     """
 
     steps: list[ChainStep]
@@ -70,6 +116,9 @@ class Chain:
     first_discrimination: Discrimination | None
     noise: Finding | None
     step_findings: list[list[Finding]] = field(default_factory=list)
+    exchanges: list[Exchange] = field(default_factory=list)
+    forward_order: list[str] = field(default_factory=list)
+    without: list[BaseModel] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
@@ -144,7 +193,121 @@ def select_causes(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: De
             if with_noise:  # noise measured against the final model
                 noise = next(f for f in test_effects(current, fit, det, cfg, ("noise",)) if f.effect == "noise")
             break
-    return Chain(steps, first or [], first_disc, noise, all_findings)
+    result = Chain(steps, first or [], first_disc, noise, all_findings, forward_order=[s.finding.effect for s in steps])
+    if len(steps) >= 2 and chain.exchange_passes > 0:
+        result = exchange_causes(result, base, fit, det, cfg, chain, tuple(e for e in effects if e != "noise"))
+        if with_noise and result.forward_order != [s.finding.effect for s in result.steps]:  # noise against the new final model
+            result.noise = next(f for f in test_effects(result.steps[-1].model, fit, det, cfg, ("noise",)) if f.effect == "noise")
+    if len(result.steps) == 1:
+        result.without = [base]
+    elif result.steps:
+        final = result.steps[-1].model
+        result.without = [without_cause(final, st.finding.effect, base, fit, det, chain) for st in result.steps]
+    return result
+
+
+def without_cause(model: BaseModel, name: str, base: BaseModel, fit: list[Sample], det: list[Sample], cfg: ChainConfig) -> BaseModel:
+    """``model`` without the component ``name``, the others refitted together (the fitted ``base`` when none
+    is left)."""
+    kept = [copy.deepcopy(c) for c in model.components if c.name != name]
+    if not kept:
+        return base
+    reduced = model.replaced(kept)
+    fit_parameters(reduced, joint_targets(reduced, fit), [s.batch for s in fit], [s.field for s in fit], masks=[s.score for s in fit],
+                   iters=cfg.joint_lm_iters)
+    return keep_rim_if_better(reduced, model, det)
+
+
+def exchange_causes(chain: Chain, base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig, chain_cfg: ChainConfig,
+                    candidates: tuple[str, ...]) -> Chain:
+    """Re-select every chosen cause's slot given the others, then rebuild the steps when the set changed.
+
+    For each cause c (in the order chosen): the final model without c, refitted (:func:`without_cause`), is
+    the reference for :func:`detect.test_effects` over every structural effect not among the others (c
+    included), with the nested test of the two leading ones. If nothing is detected, c is dropped; if the
+    winner is another effect and its model predicts the detection pairs better than the current final model,
+    it replaces c; otherwise c stays. Up to :attr:`ChainConfig.exchange_passes` passes, until one changes
+    nothing. Detection pairs decide; the fit pairs only fit.
+    """
+    names = [s.finding.effect for s in chain.steps]
+    model = chain.steps[-1].model
+    mse = masked_mse(model, det)
+    exchanges: list[Exchange] = []
+    chosen_finding: dict[str, Finding] = {s.finding.effect: s.finding for s in chain.steps}
+    for _ in range(chain_cfg.exchange_passes):
+        changed = False
+        for name in list(names):
+            if name not in names or len(names) < 2:
+                continue
+            others = [n for n in names if n != name]
+            reduced = without_cause(model, name, base, fit, det, chain_cfg)
+            pool = tuple(e for e in candidates if e not in others)
+            findings = test_effects(reduced, fit, det, cfg, pool)
+            discriminate(findings, reduced, fit, det, cfg)
+            win = next((f for f in findings if f.detected and f.model is not None), None)
+            own = next((f for f in findings if f.effect == name), None)
+            if win is None:
+                names.remove(name)
+                model, mse, changed = reduced, masked_mse(reduced, det), True
+                exchanges.append(Exchange(name, "dropped", "", own.effect_size if own else 0.0, own.p_value if own else 1.0, findings))
+                log.info("exchange: %s dropped (nothing detected without it)", name)
+                continue
+            if win.effect != name:
+                cand = joint_refit(win.model, reduced, fit, det, chain_cfg)
+                cand_mse = masked_mse(cand, det)
+                if cand_mse < mse:
+                    names[names.index(name)] = win.effect
+                    chosen_finding[win.effect] = win
+                    model, mse, changed = cand, cand_mse, True
+                    exchanges.append(Exchange(name, "replaced", win.effect, win.effect_size, win.p_value, findings))
+                    log.info("exchange: %s replaced by %s (detection MSE %.4g)", name, win.effect, cand_mse)
+                    continue
+            exchanges.append(Exchange(name, "kept", name, own.effect_size if own else win.effect_size,
+                                      own.p_value if own else win.p_value, findings))
+        if not changed:
+            break
+    if [s.finding.effect for s in chain.steps] == names:
+        chain.exchanges = exchanges
+        return chain
+    steps = ordered_steps(names, model, base, chain.first_findings, chosen_finding, fit, det, cfg, chain_cfg)
+    return Chain(steps, chain.first_findings, chain.first_discrimination, chain.noise, chain.step_findings, exchanges, chain.forward_order)
+
+
+def ordered_steps(names: list[str], final: BaseModel, base: BaseModel, first: list[Finding], chosen: dict[str, Finding],
+                  fit: list[Sample], det: list[Sample], cfg: DetectConfig, chain_cfg: ChainConfig) -> list[ChainStep]:
+    """The steps of an exchanged set: causes ordered by what each explains alone against the base model
+    (step 1's effect sizes), step k's model the base model with the first k causes fitted together (the last
+    is ``final``), and each step's finding measured against the model of the steps before it on the
+    detection pairs (its statistic, p-value and effect size; parameters and text from the final model)."""
+    solo = {f.effect: f.effect_size for f in first}
+    order = sorted(names, key=lambda n: -solo.get(n, -math.inf))
+    models: list[BaseModel] = []
+    prev = base
+    for k, name in enumerate(order):
+        if k == len(order) - 1:
+            model = final
+        else:
+            model = fit_effect(prev, name, fit, cfg.lm_iters, refit_rim=True, refit_previous="all")[0]
+            model = keep_rim_if_better(model if prev is base else joint_refit(model, prev, fit, det, chain_cfg), prev, det)
+        models.append(model)
+        prev = model
+    noise = next((f for f in first if f.effect == "noise"), None)
+    steps: list[ChainStep] = []
+    prev = base
+    for name, model in zip(order, models):
+        prev_su, prev_co, owners = tile_mse(prev, det, cfg.tile_px)
+        su = tile_mse(model, det, cfg.tile_px)[0]
+        t, p = effect_test(clustered_delta(prev_su, su, prev_co, owners))
+        effect = float((prev_su.sum() - su.sum()) / max(systematic_sse(float(prev_su.sum()), det, noise, cfg), 1e-20))
+        comp = final.component(name)
+        params = comp.describe()
+        src = chosen.get(name)
+        f = Finding(name, t, p, effect, bool(p < cfg.alpha and effect > cfg.threshold(name)), params,
+                    explanation(name, params, src.held if src else ()), model, su, src.held if src else (), testable=True)
+        log.info("step %d after the exchange: %s effect %.4f p %.2g", len(steps) + 1, name, effect, p)
+        steps.append(ChainStep(f, model, None))
+        prev = model
+    return steps
 
 
 def model_intervals(model: BaseModel, fit: list[Sample]) -> dict[str, dict[str, tuple[float, float]]]:

@@ -88,8 +88,8 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     if len(res["causes"]) > 1:
         click.echo("every cause, in order:")
         for c in res["causes"]:
-            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB (95% CI [{c['gain_ci_db'][0]:+.3f}, {c['gain_ci_db'][1]:+.3f}]), "
-                       f"cumulative {c['cumulative_gain_db']:+.3f} dB")
+            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI [{c['gain_ci_db'][0]:+.3f}, "
+                       f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
     cov = res["fit_coverage"]
     click.echo(f"fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, {cov['field_zones']} of {cov['field_zones_of']} field zones")
     click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "

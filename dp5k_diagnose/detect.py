@@ -646,19 +646,26 @@ def test_effects(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Det
         comp = model.component(name)
         params = comp.describe()
         detected = bool(p < cfg.alpha and effect > cfg.threshold(name))
-        try:
-            text = EXPLAIN[name].format(**params)
-        except (KeyError, ValueError):
-            text = name
         held = [n for n in comp.fit_names if (comp, n) not in fitted[name][1]]
-        if held:
-            text += f" ({', '.join(held)} not fitted: too little of the fit data is where they act; held neutral)"
+        text = explanation(name, params, held)
         log.info("%s: effect %.4f t %.2f p %.2g params %s", name, effect, t, p, params)
         findings.append(Finding(name, t, p, effect, detected, params, text, model, su, tuple(held)))
     one_sided_asymmetry_is_a_profile(findings)
     findings = [remeasure_noise(f, findings, fit, det, cfg, base_total / max(float(base_co.sum()), 1.0)) for f in findings]
     findings.sort(key=lambda f: (not f.detected, -f.rank_score))
     return findings
+
+
+def explanation(name: str, params: dict[str, Any], held: tuple[str, ...] | list[str] = ()) -> str:
+    """One sentence saying what ``name``'s fitted ``params`` mean (:data:`EXPLAIN`), and which parameters the
+    fit data could not constrain."""
+    try:
+        text = EXPLAIN[name].format(**params)
+    except (KeyError, ValueError):
+        text = name
+    if held:
+        text += f" ({', '.join(held)} not fitted: too little of the fit data is where they act; held neutral)"
+    return text
 
 
 def reference_sse(base: BaseModel, model: BaseModel, det: list[Sample], base_su: np.ndarray, cfg: DetectConfig) -> np.ndarray:

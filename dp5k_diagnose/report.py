@@ -122,28 +122,53 @@ def chain_text(causes: list[dict[str, Any]]) -> str:
     return " -> ".join(f"`{c['name']}`" for c in causes)
 
 
+def exchange_lines(selection: dict[str, Any], final: list[str]) -> list[str]:
+    """report.md's account of the exchange step (report.json ``selection``): what the forward selection chose and
+    what re-selecting each cause's slot given the others changed; nothing when it did not run."""
+    ex = selection.get("exchanges") or []
+    if not ex:
+        return []
+    fwd = selection.get("forward_order") or []
+    did = []
+    for e in ex:
+        if e["action"] == "dropped":
+            did.append(f"dropped `{e['slot']}` (nothing is detected without it given the others)")
+        elif e["action"] == "replaced":
+            did.append(f"replaced `{e['slot']}` by `{e['by']}` (effect size {e['effect_size']:.3f}, p {e['p_value']:.2g} in its place, "
+                       "and a better prediction of the detection pairs)")
+    if not did:
+        return [f"Each cause was re-tested in its slot given the others and kept ({', '.join(f'`{n}`' for n in final)}).", ""]
+    return [f"The forward selection chose {' -> '.join(f'`{n}`' for n in fwd)}; re-selecting each cause's slot given the others "
+            f"{'; '.join(did)}. The steps above are ordered by what each cause explains alone against the base model, "
+            "each tested against the model of the steps before it.", ""]
+
+
 def causes_lines(result: dict[str, Any]) -> list[str]:
     """report.md's chain of causes (report.json ``causes``), the measured noise model and what the fit saw."""
     lines = ["## Causes, in order", "",
              "Each step was tested against the model of the steps before it (effect size: share of that model's "
-             "systematic error removed on detection pairs; p: signed-rank test) and adds the held-out PSNR gain shown "
-             "(95 % bootstrap CI over pairs). Parameters are those of the final model, all chosen effects refitted "
+             "systematic error removed on detection pairs; p: signed-rank test). Held-out PSNR gains, 95 % bootstrap CI "
+             "over pairs: *given the others* is what the cause adds to a model holding every other cause (the final model "
+             "against it without the cause, refitted), *step* what it adds over the steps before it; the step gains add "
+             "up to the cumulative one. Parameters are those of the final model, all chosen effects refitted "
              "together, with 95 % intervals clustered over the fit pairs. `noise` comes last: a prediction is an "
              "expectation, so modelling noise cannot raise PSNR.", ""]
     causes = result.get("causes") or []
     if not causes:
         lines += ["No effect of the vocabulary is significant: `none`.", ""]
     else:
-        lines += ["| step | effect | effect size | p-value | gain (dB) [95 % CI] | cumulative (dB) | parameters [95 % interval] |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += ["| step | effect | effect size | p-value | gain given the others (dB) [95 % CI] | step gain (dB) [95 % CI] | cumulative (dB) | parameters [95 % interval] |",
+                  "|---|---|---|---|---|---|---|---|"]
         for c in causes:
             iv = c.get("param_intervals", {})
             par = ", ".join(f"{k}={_num(v)}" + (f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else "")
                             for k, v in c["params"].items() if isinstance(v, float))
             lo, hi = c["gain_ci_db"]
+            slo, shi = c.get("step_gain_ci_db", c["gain_ci_db"])
             lines.append(f"| {c['step']} | `{c['name']}` | {c['effect_size']:.3f} | {c['p_value']:.2g} | {c['gain_db']:+.3f} [{lo:+.3f}, {hi:+.3f}] "
-                         f"| {c['cumulative_gain_db']:+.3f} | {par} |")
+                         f"| {c.get('step_gain_db', c['gain_db']):+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
         lines.append("")
+    lines += exchange_lines(result.get("selection") or {}, [c["name"] for c in causes if c["name"] != "noise"])
     nm = result.get("noise_model") or {}
     if nm.get("measured"):
         iv = nm.get("intervals", {})

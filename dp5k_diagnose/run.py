@@ -146,6 +146,9 @@ class Diagnosis:
     chain_tests: list[list[dict[str, Any]]] = field(default_factory=list)
     """Per step of the chain, every effect tested against the model of the steps before (name, effect size,
     p-value, detected, testable)."""
+    selection: dict[str, Any] = field(default_factory=dict)
+    """How the causes were chosen: the forward selection's order and the exchange step's slot tests
+    (:func:`dp5k_diagnose.chain.exchange_causes`)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -160,6 +163,7 @@ class Diagnosis:
             "extended_model_spec": model_to_spec(self.extended),
             "extended_model_intervals": {k: {n: list(v) for n, v in d.items()} for k, d in self.extended_intervals.items()},
             "chain_tests": self.chain_tests,
+            "selection": self.selection,
             "noise_model": self.noise_model,
             "fit_coverage": self.fit_coverage,
             "splits_used": self.splits_used,
@@ -244,20 +248,24 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
     step_metrics = [pair_metrics_by_mask(lambda s, m=st.model: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
                     for st in chain.steps]
+    without_metrics = [before["predictable"] if m is base else
+                       pair_metrics_by_mask(lambda s, m=m: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
+                       for m in chain.without]
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
     gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
     g_all = gain_report(before["valid"], after["valid"], gain_split, cfg.n_boot, cfg.seed, "valid")
     gain["all_valid"] = {k: v for k, v in g_all.items() if k not in ("split", "per_pair_psnr_gain")}
     fit_used = reading.apply(fit)
     intervals = model_intervals(chain.steps[-1].model, fit_used) if chain.steps else {}
-    causes = cause_entries(chain, before["predictable"], step_metrics, intervals, cfg)
+    causes = cause_entries(chain, before["predictable"], step_metrics, intervals, cfg, without_metrics)
     coverage = fit_coverage(reader, fit)
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
     return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, chain.first_discrimination, reading,
                      causes, noise_model(chain.noise, cfg.detect), coverage, intervals,
                      [[{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in step]
-                      for step in chain.step_findings])
+                      for step in chain.step_findings],
+                     {"forward_order": chain.forward_order, "exchanges": [e.to_json() for e in chain.exchanges]})
 
 
 def _mean(x: np.ndarray) -> float:
@@ -266,12 +274,22 @@ def _mean(x: np.ndarray) -> float:
 
 
 def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetrics],
-                  intervals: dict[str, dict[str, tuple[float, float]]], cfg: DiagnoseConfig) -> list[dict[str, Any]]:
+                  intervals: dict[str, dict[str, tuple[float, float]]], cfg: DiagnoseConfig,
+                  without_metrics: list[PairMetrics] | None = None) -> list[dict[str, Any]]:
     """report.json ``causes``: per chosen effect, in order, its parameters in the final (extended) model with
-    95 % intervals, its finding at its step (effect size and p against the model of the steps before), the
-    held-out PSNR gain (dB) the step adds with a bootstrap CI over pairs, and the cumulative gain; ``noise``
-    last (gain exactly 0: a prediction is an expectation)."""
+    95 % intervals, its finding at its step (effect size and p against the model of the steps before), and
+    held-out PSNR gains (dB, mean over pairs with a 95 % bootstrap CI over pairs):
+
+    * ``gain_db`` / ``gain_ci_db``: what the cause adds to a model holding every other cause (the final model
+      against the final model without it, refitted; ``without_metrics``, aligned with the steps). Effects
+      that hide each other (a bright rim and a focus offset) each gain little alone and much beside the
+      other; this is the gain that says the final model needs the cause. With one cause, the step's gain.
+    * ``step_gain_db`` / ``step_gain_ci_db``: what the step adds over the model of the steps before it.
+    * ``cumulative_gain_db``: the model after the step against the base model (the step gains add up to it).
+
+    ``noise`` comes last with every gain exactly 0 (a prediction is an expectation)."""
     final = chain.steps[-1].model if chain.steps else None
+    final_metrics = step_metrics[-1] if step_metrics else None
     out: list[dict[str, Any]] = []
     prev = before.psnr
     cumulative = 0.0
@@ -280,19 +298,25 @@ def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetr
         comp = next(c for c in final.components if c.name == name)
         d = pm.psnr - prev
         lo, hi = bootstrap_ci(d, cfg.n_boot, seed=cfg.seed)
+        if without_metrics is not None and final_metrics is not None:
+            g = final_metrics.psnr - without_metrics[k].psnr
+            glo, ghi = bootstrap_ci(g, cfg.n_boot, seed=cfg.seed)
+        else:
+            g, glo, ghi = d, lo, hi
         cumulative = _mean(pm.psnr - before.psnr)
         out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()),
                     "param_intervals": {n: list(v) for n, v in intervals.get(name, {}).items()},
                     "effect_size": st.finding.effect_size, "p_value": st.finding.p_value,
-                    "gain_db": _mean(d), "gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
+                    "gain_db": _mean(g), "gain_ci_db": [glo, ghi],
+                    "step_gain_db": _mean(d), "step_gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
                     "explanation": st.finding.explanation})
         prev = pm.psnr
     nz = chain.noise
     if nz is not None and nz.detected:
         out.append({"name": "noise", "step": len(out) + 1, "params": _json_params(nz.params),
                     "param_intervals": {n: list(v) for n, v in nz.intervals.items()}, "effect_size": nz.effect_size,
-                    "p_value": nz.p_value, "gain_db": 0.0, "gain_ci_db": [0.0, 0.0], "cumulative_gain_db": cumulative,
-                    "explanation": nz.explanation})
+                    "p_value": nz.p_value, "gain_db": 0.0, "gain_ci_db": [0.0, 0.0], "step_gain_db": 0.0,
+                    "step_gain_ci_db": [0.0, 0.0], "cumulative_gain_db": cumulative, "explanation": nz.explanation})
     return out
 
 

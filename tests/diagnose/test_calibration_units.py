@@ -130,7 +130,15 @@ def test_chain_puts_noise_after_every_structural_cause_and_adds_up_the_step_gain
     after2 = PairMetrics(ids, after1.psnr + np.array([2.0, 1.0, 3.0, 2.0]), flat, flat)
     out = cause_entries(chain, before, [after1, after2], {}, DiagnoseConfig(n_boot=200))
     assert [c["name"] for c in out] == ["lr_gain_imbalance", "disparity_scale", "noise"]
-    assert out[0]["gain_db"] == pytest.approx(10.0) and out[1]["gain_db"] == pytest.approx(2.0)
-    assert out[1]["cumulative_gain_db"] == pytest.approx(12.0) and out[1]["gain_ci_db"][0] > 0
+    assert out[0]["step_gain_db"] == pytest.approx(10.0) and out[1]["step_gain_db"] == pytest.approx(2.0)
+    assert out[1]["cumulative_gain_db"] == pytest.approx(12.0) and out[1]["step_gain_ci_db"][0] > 0
     assert out[2]["gain_db"] == 0.0 and out[2]["gain_ci_db"] == [0.0, 0.0] and out[2]["cumulative_gain_db"] == pytest.approx(12.0)
+    assert out[2]["step_gain_db"] == 0.0 and out[2]["step_gain_ci_db"] == [0.0, 0.0]
     assert out[2]["param_intervals"]["shot_var"] == [8e-5, 1.2e-4]
+    # given the others: the final model against the final model without the cause (here the first cause adds
+    # 4 dB to a model that has the second, whatever it added alone at step 1)
+    without_lr = PairMetrics(ids, after2.psnr - np.array([4.0, 5.0, 3.0, 4.0]), flat, flat)
+    without_ds = after1
+    out = cause_entries(chain, before, [after1, after2], {}, DiagnoseConfig(n_boot=200), [without_lr, without_ds])
+    assert out[0]["gain_db"] == pytest.approx(4.0) and out[0]["step_gain_db"] == pytest.approx(10.0)
+    assert out[1]["gain_db"] == pytest.approx(2.0) and out[0]["gain_ci_db"][0] > 0
