@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import torch
+
 os.environ.setdefault("DP5K_PROGRESS", "0")
 
 
@@ -47,26 +49,28 @@ def main() -> None:
             (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (144, 96), False),
             (3, 2, (1.8, 2.8, 4.0, 5.6, 2.0), (576, 384), False),
         ]
-    print(f"{'pairs':>5} {'size':>9} {'max|CoC|':>8} {'cpu load':>8} {'load':>6} {'fit':>6} {'detect':>7} {'gain':>6} {'total s':>8}")
+    print(f"torch threads {torch.get_num_threads()}; 'cpu s' is this process's CPU time for the diagnosis (on a shared machine the "
+          "wall seconds wait for a core, the CPU seconds do not)")
+    print(f"{'pairs':>5} {'size':>9} {'max|CoC|':>8} {'cpu load':>8} {'load':>6} {'fit':>6} {'detect':>7} {'gain':>6} {'total s':>8} {'cpu s':>7}")
     with tempfile.TemporaryDirectory() as tmp:
         for i, (scenes, cams, fns, size, strip) in enumerate(cases):
             root = Path(tmp) / f"ds{i}"
             make_dataset(root, scenes=scenes, size=size, f_numbers=fns, cameras=tuple(range(cams)), seed=i)
             n = (len(scenes) if isinstance(scenes, list) else scenes) * cams * len(fns)
             coc = _max_abs_coc(root)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             tt = diagnose_base(root).timings_s
             print(f"{n:5d} {size[0]:>4}x{size[1]:<4} {coc:8.1f} {os.getloadavg()[0]:8.1f} {tt['load']:6.1f} {tt['fit_base']:6.1f} "
-                  f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}", flush=True)
+                  f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f} {time.process_time() - c0:7.1f}", flush=True)
             if strip:
                 for f in (root / "pairs").glob("*/params.json"):
                     obj = json.loads(f.read_text())
                     obj.pop("sharp_f_number", None)
                     f.write_text(json.dumps(obj))
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 tt = diagnose_base(root).timings_s
                 print(f"{n:5d} {size[0]:>4}x{size[1]:<3}* {coc:8.1f} {os.getloadavg()[0]:8.1f} {tt['load']:6.1f} {tt['fit_base']:6.1f} "
-                      f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f}", flush=True)
+                      f"{tt['detect']:7.1f} {tt['gain']:6.1f} {time.perf_counter() - t0:8.1f} {time.process_time() - c0:7.1f}", flush=True)
 
 
 def _max_abs_coc(root: Path) -> float:
