@@ -137,6 +137,20 @@ def _as_float(img: NDArray) -> NDArray[np.float32]:
     return a.astype(np.float32, copy=False)
 
 
+def _difference(pos: NDArray, neg: NDArray, shape: tuple[int, ...], index: int) -> NDArray[np.float32]:
+    """``pos - neg`` in float32 as ``_as_float(pos) - _as_float(neg)``; integer images (raw counts) are converted
+    inside the subtraction instead of as two float32 copies first (exact: every integer below 2^24 is a float32)."""
+    pos, neg = np.asarray(pos), np.asarray(neg)
+    if pos.shape != shape or neg.shape != shape:
+        bad = pos.shape if pos.shape != shape else neg.shape
+        if len(bad) != 2:
+            raise BadInputError(f"structured-light images must be single channel (H, W), got shape {bad}")
+        raise BadInputError(f"pattern {index} has shape {bad}, expected {shape}")
+    if pos.dtype == neg.dtype and pos.dtype in (np.uint8, np.uint16, np.int16, np.int8):
+        return np.subtract(pos, neg, dtype=np.float32)
+    return _as_float(pos) - _as_float(neg)
+
+
 def decode_graycode(
     patterns: Sequence[NDArray] | Callable[[int], NDArray],
     white: NDArray,
@@ -191,31 +205,39 @@ def decode_graycode(
             levels[axis].append(((n, n), t))
     out = []
     offset = 0
+    mw = int(cfg.max_weak_bits)
     for axis, nb in enumerate((n_bits(cfg.proj_width), n_bits(cfg.proj_height))):
-        code = np.zeros(w.shape, np.int32)
+        # the binary code is built in the narrowest integer type that holds its nb bits (int32 at the end)
+        code = np.zeros(w.shape, np.uint16 if nb <= 16 else np.int32)
         prev = np.zeros(w.shape, np.bool_)
         weak = np.zeros(w.shape, np.uint8)
         count = np.zeros(w.shape, np.uint8)
+        undecided = np.empty(w.shape, np.bool_)  # ~strong, updated in place
+        dpos = np.empty(w.shape, np.bool_)
+        sp = np.empty(w.shape, np.bool_)
+        tmp = np.empty(w.shape, np.bool_)
         for k in range(nb):
-            pos = _as_float(load(offset + 2 * k))
-            neg = _as_float(load(offset + 2 * k + 1))
-            if pos.shape != w.shape or neg.shape != w.shape:
-                raise BadInputError(f"pattern {offset + 2 * k} has shape {pos.shape}, expected {w.shape}")
-            diff = pos - neg
-            strong = np.abs(diff) >= thr
-            bit = diff > 0
+            diff = _difference(load(offset + 2 * k), load(offset + 2 * k + 1), w.shape, offset + 2 * k)
+            np.greater(diff, 0, out=dpos)
+            bit = dpos.copy()
+            np.greater_equal(np.abs(diff), thr, out=undecided)
+            np.logical_not(undecided, out=undecided)
             for size, t in levels[axis]:  # the finest level with a clear decision gives the bit
                 diff_s = box(diff, size)
-                strong_s = np.abs(diff_s) >= t
+                np.greater(diff_s, 0, out=sp)
+                np.copyto(bit, sp, where=undecided)  # np.where(strong, bit, diff_s > 0)
+                np.abs(diff_s, out=diff_s)
+                np.greater_equal(diff_s, t, out=tmp)  # strong_s
                 if cfg.agree_px:
-                    strong_s &= (diff_s > 0) == (diff > 0)
-                bit = np.where(strong, bit, diff_s > 0)
-                strong |= strong_s
-            weak += ~strong
-            count += weak <= cfg.max_weak_bits
+                    tmp &= np.equal(sp, dpos, out=sp)
+                np.logical_not(tmp, out=tmp)
+                undecided &= tmp  # strong |= strong_s
+            weak += undecided
+            count += np.less_equal(weak, mw, out=tmp)
             prev ^= bit  # Gray -> binary: b_k = b_{k-1} xor g_k
-            code = (code << 1) | prev
-        out.append((code, count))
+            code <<= 1
+            code |= prev
+        out.append((code.astype(np.int32), count))
         offset += 2 * nb
     (col, cb), (row, rb) = out
     return GrayDecode(col, row, cb, rb, lit, cfg)

@@ -67,32 +67,64 @@ def _shifted_pair(P: NDArray[np.float32], dy: int, dx: int) -> tuple[tuple[slice
     return (ys_a, xs_a), (ys_b, xs_b)
 
 
-def bound_sum_m(P: NDArray[np.float32], offsets: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+BOUND_BLOCK_PX = 32768
+"""Pixels (whole rows) per block of :func:`bound_sum_m`: the points, sums and maxima of a block stay in the CPU
+caches across its offsets instead of a full-image pass per offset."""
+
+
+def bound_sum_m(P: NDArray[np.float32], offsets: NDArray[np.int64], block_px: int = BOUND_BLOCK_PX
+                ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """(H, W) sum and largest of the 3D distances (metres) to the neighbours at ``offsets`` and their mirror
-    images; NaN where one of them is invalid or outside the image."""
+    images; NaN where one of them is invalid or outside the image.
+
+    Row block by row block; within a block the offsets come in the same order and each pixel adds its distance
+    to ``p + offset`` before the one to ``p - offset``, as a whole-image pass per offset does, so the float32
+    sums are the same. A distance between two blocks' pixels is computed in both blocks."""
     H, W = P.shape[1:]
     ry, rx = int(offsets[:, 0].max()), int(np.abs(offsets[:, 1]).max())
     S = np.full((H, W), np.nan, np.float32)
     S[ry:H - ry, rx:W - rx] = 0.0  # pixels whose every offset lies inside the image
     M = np.zeros((H, W), np.float32)
-    for dy, dx in offsets:
-        a, b = _shifted_pair(P, int(dy), int(dx))
-        diff = P[(slice(None),) + a] - P[(slice(None),) + b]
-        d = np.sqrt(np.einsum("ijk,ijk->jk", diff, diff))
-        S[a] += d
-        S[b] += d
-        np.fmax(M[a], d, out=M[a])
-        np.fmax(M[b], d, out=M[b])
+    rows = max(1, int(block_px) // max(W, 1))
+    offs = [(int(dy), int(dx)) for dy, dx in offsets]
+    for y0 in range(0, H, rows):
+        y1 = min(H, y0 + rows)
+        for dy, dx in offs:
+            r0, r1 = max(0, y0 - dy), min(H - dy, y1)  # rows of the pairs' first pixels that touch the block
+            if r1 <= r0:
+                continue
+            (_, xa), (_, xb) = _shifted_pair(P, dy, dx)
+            diff = P[:, r0:r1, xa] - P[:, r0 + dy:r1 + dy, xb]
+            d = np.sqrt(np.einsum("ijk,ijk->jk", diff, diff))
+            a0, a1 = max(r0, y0), r1  # first pixels inside the block
+            if a1 > a0:
+                S[a0:a1, xa] += d[a0 - r0:a1 - r0]
+                np.fmax(M[a0:a1, xa], d[a0 - r0:a1 - r0], out=M[a0:a1, xa])
+            b0, b1 = r0, min(r1, y1 - dy)  # second pixels (row + dy) inside the block
+            if b1 > b0:
+                S[b0 + dy:b1 + dy, xb] += d[b0 - r0:b1 - r0]
+                np.fmax(M[b0 + dy:b1 + dy, xb], d[b0 - r0:b1 - r0], out=M[b0 + dy:b1 + dy, xb])
     return S, M
 
 
+def pad_points(P: NDArray[np.float32], window_px: int) -> NDArray[np.float32]:
+    """``P`` with a NaN border of ``window_px // 2`` pixels (what :func:`exact_mean_distance_m` indexes)."""
+    r = window_px // 2
+    H, W = P.shape[1:]
+    pad = np.full((P.shape[0], H + 2 * r, W + 2 * r), np.nan, P.dtype)
+    pad[:, r:r + H, r:r + W] = P
+    return pad
+
+
 def exact_mean_distance_m(P: NDArray[np.float32], ys: NDArray[np.int64], xs: NDArray[np.int64], n_select: int,
-                          window_px: int, missing_px: float, ray_step: float) -> NDArray[np.float64]:
+                          window_px: int, missing_px: float, ray_step: float,
+                          padded: NDArray[np.float32] | None = None) -> NDArray[np.float64]:
     """Mean distance (metres) of the pixels (ys, xs) to their ``n_select`` nearest window neighbours and themselves
     (the self distance 0 counts: divided by ``n_select + 1``, as Open3D does); where fewer than ``n_select``
-    neighbours are valid, each missing one counts at ``missing_px`` footprints of the pixel."""
+    neighbours are valid, each missing one counts at ``missing_px`` footprints of the pixel. ``padded``:
+    :func:`pad_points` of ``P`` when already made (the filter selects twice from one padded copy)."""
     r = window_px // 2
-    pad = np.pad(P, ((0, 0), (r, r), (r, r)), constant_values=np.nan)
+    pad = pad_points(P, window_px) if padded is None else padded
     Wp = pad.shape[2]
     flat = pad.reshape(3, -1)
     off = window_offsets(window_px)
@@ -139,7 +171,8 @@ def grid_outlier_mask(depth_m: NDArray[np.float32], rays: NDArray[np.float32], n
     ys, xs = np.nonzero(valid & sub)
     if ys.size < 2:
         ys, xs = np.nonzero(valid)
-    avg = exact_mean_distance_m(P, ys, xs, n_select, window_px, missing_px, ray_step)
+    padded = pad_points(P, window_px)
+    avg = exact_mean_distance_m(P, ys, xs, n_select, window_px, missing_px, ray_step, padded)
     avg = avg[avg > 0]
     threshold_m = avg.mean() + std_ratio * avg.std(ddof=1)
 
@@ -151,7 +184,7 @@ def grid_outlier_mask(depth_m: NDArray[np.float32], rays: NDArray[np.float32], n
     ys, xs = np.nonzero(valid & ~kept_by_bound)
     remove = np.zeros(depth_m.shape, bool)
     if ys.size:
-        avg = exact_mean_distance_m(P, ys, xs, n_select, window_px, missing_px, ray_step)
+        avg = exact_mean_distance_m(P, ys, xs, n_select, window_px, missing_px, ray_step, padded)
         bad = ~((avg > 0) & (avg < threshold_m))
         remove[ys[bad], xs[bad]] = True
     return remove

@@ -27,24 +27,36 @@ def _quad_offsets(cfa: str) -> dict[str, list[tuple[int, int]]]:
 
 
 def half_size_rgb(mosaic: NDArray, black: float, cfa: str = "RGGB") -> NDArray[np.float32]:
-    """(H/2, W/2, 3) float32 linear camera RGB in raw counts above black (no white balance)."""
-    m = np.asarray(mosaic, dtype=np.float32)
+    """(H/2, W/2, 3) float32 linear camera RGB in raw counts above black (no white balance).
+
+    Per channel ``sum(planes) / len(planes) - black`` in float32, each plane converted from the mosaic on its
+    own (no float32 copy of the whole mosaic) and written into the output (no ``np.stack``)."""
+    m = np.asarray(mosaic)
     H, W = m.shape
     m = m[: H - H % 2, : W - W % 2]
     off = _quad_offsets(cfa)
-    ch = []
-    for c in "RGB":
-        planes = [m[dy::2, dx::2] for dy, dx in off[c]]
-        ch.append(sum(planes) / len(planes) - np.float32(black))
-    return np.stack(ch, -1)
+    out = np.empty(((H - H % 2) // 2, (W - W % 2) // 2, 3), np.float32)
+    blk = np.float32(black)
+    for k, c in enumerate("RGB"):
+        planes = [m[dy::2, dx::2].astype(np.float32) for dy, dx in off[c]]
+        acc = planes[0]
+        for p in planes[1:]:
+            acc += p
+        if len(planes) > 1:
+            acc /= len(planes)
+        np.subtract(acc, blk, out=out[..., k])
+    return out
 
 
 def dp_views(frames: DualPixelFrames, aux_view: str = "left") -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """(main, left, right) white-balanced linear RGB (H/2, W/2, 3), 1.0 = white - black of the main frame."""
     scale = np.float32(1.0 / (frames.white_level - frames.black_level))
     wb = np.asarray(frames.wb_gains, np.float32)
-    main = half_size_rgb(frames.main, frames.black_level, frames.cfa_pattern) * wb * scale
-    aux = half_size_rgb(frames.aux, frames.black_level, frames.cfa_pattern) * wb * scale
+    main = half_size_rgb(frames.main, frames.black_level, frames.cfa_pattern)
+    aux = half_size_rgb(frames.aux, frames.black_level, frames.cfa_pattern)
+    for a in (main, aux):  # a * wb * scale, in place
+        a *= wb
+        a *= scale
     other = main - aux
     if aux_view == "left":
         return main, aux, other

@@ -307,12 +307,12 @@ def code_view(col: NDArray[np.int32], row: NDArray[np.int32], valid: NDArray[np.
     cen, fp = cm.centroids, cm.footprint_px
     sigma = max(0.7, cfg.sigma_factor * fp)
     u, v = smooth_codes(col, row, valid, sigma)
-    g = []
-    for c in (u, v):
+    g = np.empty(u.shape + (4,), np.float32)  # written in place of np.stack of the four
+    for k, c in enumerate((u, v)):
         z = np.nan_to_num(c)
-        g.append(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
-        g.append(cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
-    return CodeView(u, v, valid, cen, np.stack(g, -1), fp, scale)
+        np.divide(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3), 8.0, out=g[..., 2 * k])
+        np.divide(cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3), 8.0, out=g[..., 2 * k + 1])
+    return CodeView(u, v, valid, cen, g, fp, scale)
 
 
 MATCH_BLOCK_PX = 65536
