@@ -56,14 +56,14 @@ def aperture_points(n: int, *, dtype: torch.dtype = torch.float32, device: torch
     return torch.stack([u[keep], v[keep]], dim=1)
 
 
-def _splat_image_py(coc: Any, n_pix: Any, src: Any, t_tab: Any, lo_tab: Any, tab_off: Any, n_ap: Any,
+def _splat_image_py(coc: Any, n_pix: Any, sharp: Any, t_tab: Any, lo_tab: Any, tab_off: Any, n_ap: Any,
                     band_h: int, reach: int, acc_l: Any, acc_r: Any) -> None:  # pragma: no cover - compiled
     """Add every pixel's rays into ``acc_l`` / ``acc_r`` (compiled by numba; see :func:`_compiled_splat`).
 
     Args:
-        coc: (H, W) float64 signed CoC diameter in px (0 where invalid).
+        coc: (H, W) signed CoC diameter in px (0 where invalid), float32 or float64.
         n_pix: (H, W) int64 aperture grid side per pixel (even).
-        src: (H, W, C + 1) float64 colour with a trailing channel of ones (coverage).
+        sharp: (C, H, W) linear image, float32 or float64.
         t_tab: float64 grid coordinates ``(k + 0.5) / n * 2 - 1`` of every used ``n``, concatenated.
         lo_tab: int64 per grid row ``j`` of every used ``n``: first kept index ``i`` of the left half
             (kept: ``lo <= i < n/2``; ``n/2`` when the row keeps none), concatenated like ``t_tab``.
@@ -72,10 +72,10 @@ def _splat_image_py(coc: Any, n_pix: Any, src: Any, t_tab: Any, lo_tab: Any, tab
         band_h: rows per band; bands two apart never touch the same accumulator row (>= 2 * footprint radius).
         reach: ``ceil(max |C| / 2) + 2`` px, bound on a footprint's radius (sizes the scratch buffers).
         acc_l, acc_r: (H * W * (C + 1),) float32 or float64 accumulators of the left and right view,
-            (H, W, C + 1) flattened, added to in place.
+            (H, W, C + 1) flattened (colour, then the coverage), added to in place.
     """
     H, W = coc.shape
-    C1 = src.shape[2]
+    C1 = sharp.shape[0] + 1
     n_bands = (H + band_h - 1) // band_h
     n_max = tab_off.shape[0] - 1
     m = 2 * reach + 4
@@ -87,8 +87,11 @@ def _splat_image_py(coc: Any, n_pix: Any, src: Any, t_tab: Any, lo_tab: Any, tab
             bk = np.empty(n_max // 2 + 1, np.int64)  # grid row cut at ray k: first tap, its two weights
             g0 = np.empty(n_max // 2 + 1)
             g1 = np.empty(n_max // 2 + 1)
-            ry0 = np.empty(n_max, np.int64)  # grid rows: y tap, fraction
-            rfy = np.empty(n_max)
+            ry0 = np.empty(n_max // 2 + 1, np.int64)  # grid rows n/2 + r: y tap, fraction, cut tap and its weights
+            rfy = np.empty(n_max // 2 + 1)
+            rb = np.empty(n_max // 2 + 1, np.int64)
+            rg0 = np.empty(n_max // 2 + 1)
+            rg1 = np.empty(n_max // 2 + 1)
             gfull = np.empty(m)  # x-profile of a full half row, from tap dmin
             pre = np.empty(m)
             kb = np.empty(m)  # one sensor row's weights at the taps next to the grid rows' cuts
@@ -108,8 +111,9 @@ def _splat_image_py(coc: Any, n_pix: Any, src: Any, t_tab: Any, lo_tab: Any, tab
                     h = abs(c) * 0.5
                     off = tab_off[n]
                     inv = 1.0 / n_ap[n]
-                    for ch in range(C1):
-                        val[ch] = src[y, x, ch] * inv
+                    for ch in range(C1 - 1):
+                        val[ch] = sharp[ch, y, x] * inv
+                    val[C1 - 1] = inv
                     # for C < 0 each half lands where the other half lands for |C|
                     dst_l, dst_r = (acc_r, acc_l) if c < 0 else (acc_l, acc_r)
                     # rays of the left half (u < 0) of a grid row land at x + h u_i, i < n/2, sorted by x
@@ -140,43 +144,47 @@ def _splat_image_py(coc: Any, n_pix: Any, src: Any, t_tab: Any, lo_tab: Any, tab
                         g1[k] = gfull[b + 1] - pre[b + 1]
                         pre[b] += 1.0 - rfx[k]
                         pre[b + 1] += rfx[k]
-                    for j in range(n):
-                        q = h * t_tab[off + j]
+                    # Grid rows j >= n/2 (v > 0) land on sensor rows Y >= 0, the rows j < n/2 mirror them onto
+                    # Y <= 0, so sensor rows y + Y and y - Y get the same weights; on Y = 0 the mirrored rows
+                    # add as much as the rows themselves. Going out from the centre row, a grid row lands
+                    # lower (ry0 + fy) and keeps fewer rays (its cut tap rb is further right).
+                    nr = 0
+                    for r in range(half):
+                        k = lo_tab[off + half + r]
+                        if k >= half:  # no ray kept here, nor in the rows further out
+                            break
+                        q = h * t_tab[off + half + r]
                         f = math.floor(q)
-                        ry0[j] = np.int64(f)
-                        rfy[j] = q - f
-                    # grid rows j and n-1-j mirror in y, so sensor rows y + Y and y - Y get the same weights
-                    ja = 0
-                    for Y in range(0, ry0[n - 1] + 2):
-                        while ja < n and ry0[ja] < Y - 1:
-                            ja += 1
-                        if y - Y < 0 and y + Y >= H:
+                        ry0[r] = np.int64(f)
+                        rfy[r] = q - f
+                        rb[r] = bk[k]
+                        rg0[r] = g0[k]
+                        rg1[r] = g1[k]
+                        nr += 1
+                    ra = 0
+                    re = 0
+                    for Y in range(0, ry0[nr - 1] + 2 if nr > 0 else 0):
+                        while ra < nr and ry0[ra] < Y - 1:
+                            ra += 1
+                        while re < nr and ry0[re] <= Y:
+                            re += 1
+                        if (y - Y < 0 and y + Y >= H) or ra == re:
                             continue
-                        # grid rows landing on sensor row Y: ry0 == Y - 1 (weight fy) or Y (1 - fy)
-                        wsum = 0.0
-                        bmin = wp
-                        bmax = -1
-                        jb = ja
-                        while jb < n and ry0[jb] <= Y:
-                            k = lo_tab[off + jb]
-                            if k < half:
-                                wsum += (1.0 - rfy[jb]) if ry0[jb] == Y else rfy[jb]
-                                bmin = min(bmin, bk[k])
-                                bmax = max(bmax, bk[k])
-                            jb += 1
-                        if bmax < 0:
-                            continue
-                        e_hi = bmax + 1  # taps bmin .. e_hi depend on each grid row's cut, later ones are wsum * gfull
+                        # grid rows ra .. re - 1 land on sensor row Y: those with ry0 == Y - 1 with weight fy,
+                        # those with ry0 == Y with weight 1 - fy
+                        bmin = rb[ra]
+                        e_hi = rb[re - 1] + 1  # taps bmin .. e_hi depend on each grid row's cut, later ones are wsum * gfull
                         for d in range(bmin, e_hi + 1):
                             kb[d] = 0.0
-                        for j in range(ja, jb):
-                            k = lo_tab[off + j]
-                            if k >= half:
-                                continue
-                            w = (1.0 - rfy[j]) if ry0[j] == Y else rfy[j]
-                            b = bk[k]
-                            kb[b] += w * g0[k]
-                            kb[b + 1] += w * g1[k]
+                        wsum = 0.0
+                        for r in range(ra, re):
+                            w = (1.0 - rfy[r]) if ry0[r] == Y else rfy[r]
+                            if Y == 0:
+                                w *= 2.0
+                            wsum += w
+                            b = rb[r]
+                            kb[b] += w * rg0[r]
+                            kb[b + 1] += w * rg1[r]
                             for d in range(b + 2, e_hi + 1):
                                 kb[d] += w * gfull[d]
                         # rv[(d - bmin) * C1 + ch] and rr[(wp - 1 - d) * C1 + ch] for taps d = bmin .. wp - 1
@@ -300,6 +308,7 @@ def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_sid
     """
     B, C, H, W = sharp.shape
     dev, dt = sharp.device, sharp.dtype
+    work_dt = torch.float64 if dt == torch.float64 else torch.float32
     c_all = torch.where(valid, coc_px, torch.zeros_like(coc_px))
     # Each pixel gets an n x n aperture grid with n >= |C| (even), so its rays land <= 1 px apart.
     n_all = torch.clamp(torch.ceil(c_all.abs()), 2, max_points_side).to(torch.int64)
@@ -312,21 +321,20 @@ def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_sid
     numba.set_num_threads(max(1, min(threads or torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     try:
         for b in range(B):
-            coc = c_all[b, 0].detach().to("cpu", torch.float64).contiguous().numpy()
+            coc = c_all[b, 0].detach().to("cpu", work_dt).contiguous().numpy()
             n_pix = n_all[b, 0].cpu().contiguous().numpy()
-            src = torch.cat([sharp[b], torch.ones_like(sharp[b, :1])], 0).detach().to("cpu", torch.float64)
-            src = src.permute(1, 2, 0).contiguous().numpy()  # (H, W, C + 1)
+            img = sharp[b].detach().to("cpu", work_dt).contiguous().numpy()
             t_tab, lo_tab, tab_off, n_ap = _aperture_tables(np.flatnonzero(np.bincount(n_pix.reshape(-1))).tolist(), dt)
             reach = int(math.ceil(float(np.abs(coc).max()) / 2)) + 2
-            acc = np.zeros((2, H * W * (C + 1)), np.float64 if dt == torch.float64 else np.float32)
-            splat(coc, n_pix, src, t_tab, lo_tab, tab_off, n_ap, 2 * reach, reach, acc[0], acc[1])
-            views = torch.from_numpy(acc).view(2, H, W, C + 1).permute(0, 3, 1, 2).to(torch.float64)  # (view, C + 1, H, W)
-            cover = (views[0, C:] + views[1, C:]).clamp_min(1e-8)
-            lefts.append((views[0, :C] / cover).to(dev, dt))
-            rights.append((views[1, :C] / cover).to(dev, dt))
+            acc = np.zeros((2, H * W * (C + 1)), np.float64 if work_dt == torch.float64 else np.float32)
+            splat(coc, n_pix, img, t_tab, lo_tab, tab_off, n_ap, 2 * reach, reach, acc[0], acc[1])
+            views = torch.from_numpy(acc).view(2, H, W, C + 1)
+            cover = (views[0, ..., C:] + views[1, ..., C:]).clamp_min(1e-8)
+            lefts.append((views[0, ..., :C] / cover).permute(2, 0, 1))
+            rights.append((views[1, ..., :C] / cover).permute(2, 0, 1))
     finally:
         numba.set_num_threads(prev_threads)
-    return torch.stack(lefts), torch.stack(rights)
+    return torch.stack(lefts).to(dev, dt), torch.stack(rights).to(dev, dt)
 
 
 class RayTracingSimulator(DPSimulator):
