@@ -19,18 +19,20 @@ border. The grid has ``n x n`` points with ``n >= |C|`` chosen per pixel (even, 
 split; capped at ``max_points_side``), i.e. a pixel's rays land at most 1 px apart while small blurs stay
 cheap.
 
-How it is computed (exactly that sum, not an approximation): pixel centres are integers, so the splat of a
-pixel's rays relative to the pixel is a kernel ``K_C(dX, dY)`` that depends only on its CoC. The bilinear
-weight is separable and the aperture points form a product lattice, so each lattice row ``j`` (one
+How it is computed (that sum exactly, in another order): pixel centres are integers, so the splat of a
+pixel's rays relative to the pixel is a kernel ``K_C(dX, dY)`` (px) that depends only on its CoC. The
+bilinear weight is separable and the aperture points form a product lattice, so each lattice row ``j`` (one
 ``v_j``) puts its x-profile (the summed x-weights of its kept rays) on two sensor rows with weights
 ``1 - fy, fy``; the kept ``u`` of a row are a contiguous range that always ends at the centre, so the
-row's profile is the full half-row profile cut off at the range's outer ray (only the two taps at the cut
-differ). A compiled kernel (numba) builds, per pixel and per sensor row of its footprint, the scalar
-weights once from these profiles (O(n) setup plus one multiply per tap) and adds ``weight · (colour, 1) /
-N_ap`` into contiguous ``(H, W, C + 1)`` accumulators; the right view gets the same weights mirrored in x
-(the point lattice is symmetric), and ``C < 0`` swaps the views. Image row bands at least the largest
-footprint apart are rendered in parallel in two passes, so no two threads write the same memory and the
-result does not depend on the thread count.
+row's profile is the profile of the full half row cut at the range's outer ray (only the two taps at the
+cut differ from it). A compiled kernel (numba) builds per pixel the full half-row profile (O(n)), and per
+sensor row of the footprint the weights of its taps, times ``(colour, 1) / N_ap``, once; it then adds them
+to contiguous ``(H, W, C + 1)`` accumulators, about ``π/8 · (|C| + 2)²`` taps of ``C + 1`` channels a view
+instead of ``π/4 · n²`` scattered rays. The lattice's symmetries give the rest: sensor rows ``y + Y`` and
+``y - Y`` get the same weights, the right view gets them mirrored in x, and ``C < 0`` swaps the views.
+Image row bands of the footprint's radius are rendered in parallel in three passes (bands three apart never
+share an accumulator row), so no two threads write the same memory and the result is the same for any
+thread count.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ def aperture_points(n: int, *, dtype: torch.dtype = torch.float32, device: torch
 
 
 def _splat_image_py(coc: Any, n_pix: Any, sharp: Any, t_tab: Any, lo_tab: Any, tab_off: Any, n_ap: Any,
-                    band_h: int, reach: int, acc_l: Any, acc_r: Any) -> None:  # pragma: no cover - compiled
+                    band_h: int, passes: int, reach: int, acc_l: Any, acc_r: Any) -> None:  # pragma: no cover - compiled
     """Add every pixel's rays into ``acc_l`` / ``acc_r`` (compiled by numba; see :func:`_compiled_splat`).
 
     Args:
@@ -69,7 +71,9 @@ def _splat_image_py(coc: Any, n_pix: Any, sharp: Any, t_tab: Any, lo_tab: Any, t
             (kept: ``lo <= i < n/2``; ``n/2`` when the row keeps none), concatenated like ``t_tab``.
         tab_off: int64 (max n + 1,) offset of ``n``'s entries in ``t_tab`` / ``lo_tab``.
         n_ap: int64 (max n + 1,) kept points of an ``n x n`` grid (both halves).
-        band_h: rows per band; bands two apart never touch the same accumulator row (>= 2 * footprint radius).
+        band_h, passes: image rows per band, and the number of passes: pass ``p`` renders the bands
+            ``p, p + passes, ...`` in parallel, which never touch the same accumulator row
+            (``(passes - 1) * band_h >= 2 * reach``).
         reach: ``ceil(max |C| / 2) + 2`` px, bound on a footprint's radius (sizes the scratch buffers).
         acc_l, acc_r: (H * W * (C + 1),) float32 or float64 accumulators of the left and right view,
             (H, W, C + 1) flattened (colour, then the coverage), added to in place.
@@ -79,9 +83,9 @@ def _splat_image_py(coc: Any, n_pix: Any, sharp: Any, t_tab: Any, lo_tab: Any, t
     n_bands = (H + band_h - 1) // band_h
     n_max = tab_off.shape[0] - 1
     m = 2 * reach + 4
-    for parity in range(2):
-        for bi in _prange((n_bands - parity + 1) // 2):
-            band = 2 * bi + parity
+    for first in range(passes):
+        for bi in _prange((n_bands - first + passes - 1) // passes):
+            band = first + passes * bi
             rx0 = np.empty(n_max // 2 + 1, np.int64)  # left half's rays in a grid row: x tap, fraction
             rfx = np.empty(n_max // 2 + 1)
             bk = np.empty(n_max // 2 + 1, np.int64)  # grid row cut at ray k: first tap, its two weights
@@ -327,7 +331,8 @@ def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_sid
             t_tab, lo_tab, tab_off, n_ap = _aperture_tables(np.flatnonzero(np.bincount(n_pix.reshape(-1))).tolist(), dt)
             reach = int(math.ceil(float(np.abs(coc).max()) / 2)) + 2
             acc = np.zeros((2, H * W * (C + 1)), np.float64 if work_dt == torch.float64 else np.float32)
-            splat(coc, n_pix, img, t_tab, lo_tab, tab_off, n_ap, 2 * reach, reach, acc[0], acc[1])
+            # bands of `reach` rows in 3 passes: balanced over a few threads, and independent of their number
+            splat(coc, n_pix, img, t_tab, lo_tab, tab_off, n_ap, reach, 3, reach, acc[0], acc[1])
             views = torch.from_numpy(acc).view(2, H, W, C + 1)
             cover = (views[0, ..., C:] + views[1, ..., C:]).clamp_min(1e-8)
             lefts.append((views[0, ..., :C] / cover).permute(2, 0, 1))

@@ -496,12 +496,37 @@ def test_raytrace_equals_reference_with_capped_aperture_grid() -> None:
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
 
 
-@pytest.mark.parametrize("threads", [1, 3])
-def test_raytrace_equals_reference_whatever_the_accumulator_count(threads: int) -> None:
-    """Rays are split over per-thread accumulators; the sum must not depend on how many."""
-    b = _scene(1, 24, 30, -9.0, 11.0, torch.float64, seed=4)
-    left, right = render_raytrace(b.sharp, b.coc_px, b.valid, threads=threads)
+def test_raytrace_equals_reference_whatever_the_thread_count() -> None:
+    """Image row bands are rendered on several threads (8 bands here); the result must not depend on how many."""
+    b = _scene(1, 64, 30, -9.0, 11.0, torch.float64, seed=4)
     ref_l, ref_r = _reference_render_raytrace(b.sharp, b.coc_px, b.valid)
+    one = render_raytrace(b.sharp, b.coc_px, b.valid, threads=1)
+    more = render_raytrace(b.sharp, b.coc_px, b.valid, threads=3)  # at most numba's pool size
+    for left, right in (one, more):
+        torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
+        torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
+    assert torch.equal(one[0], more[0]) and torch.equal(one[1], more[1])
+
+
+RAYTRACE_COCS = [0.0, 0.3, -0.7, 1.0, 1.999, 2.0, 2.001, -3.9999, 4.0, 4.0001, 5.5, -7.99, 8.0, 8.01, -9.5,
+                 10.0, 13.7, -16.0001, 19.999, 23.4]
+"""CoCs (px) on both sides of the even integers where the aperture grid's side steps, and beyond a cap of 8."""
+
+
+@pytest.mark.parametrize("max_points_side", [8, 64])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_raytrace_equals_reference_across_grid_sides_and_the_cap(dtype: torch.dtype, max_points_side: int) -> None:
+    """Every pixel its own CoC drawn from RAYTRACE_COCS (depth edges everywhere): the compiled kernel's grid
+    side, mirrored rows and cut profiles must give the reference's splat for each, including capped grids whose
+    rays land more than 1 px apart."""
+    g = torch.Generator().manual_seed(6)
+    B, H, W = 2, 40, 52
+    coc = torch.tensor(RAYTRACE_COCS, dtype=dtype)[torch.randint(len(RAYTRACE_COCS), (B, 1, H, W), generator=g)]
+    sharp = torch.rand(B, 3, H, W, generator=g, dtype=dtype)
+    valid = torch.rand(B, 1, H, W, generator=g) > 0.05
+    left, right = render_raytrace(sharp, coc, valid, max_points_side=max_points_side)
+    ref_l, ref_r = _reference_render_raytrace(sharp, coc, valid, max_points_side=max_points_side)
+    assert left.dtype == right.dtype == dtype
     torch.testing.assert_close(left, ref_l, atol=TOL, rtol=0)
     torch.testing.assert_close(right, ref_r, atol=TOL, rtol=0)
 
