@@ -11,6 +11,9 @@ follows (:func:`exchange_causes`, "floating" selection): every chosen cause's sl
 others (the model without it, refitted, is tested against every effect); a cause nothing detected replaces is
 dropped, a cause the data prefers another effect for is replaced. When the set changed, the causes are
 ordered by what each explains alone against the base model and the models of the steps are refitted.
+When no single effect is detected against the base model but one is promising (large, not significant), a
+look-ahead of two screens it with each other effect as a pair (:func:`pair_step`); later steps leave such
+cases to the exchange step.
 
 ``noise`` is a measurement, not a
 structural effect: a simulator's output is an expectation, so noise cannot raise PSNR; it is measured
@@ -182,7 +185,20 @@ def select_causes(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: De
         noise = next((f for f in findings if f.effect == "noise"), None)
         chosen = next((f for f in findings if f.detected and f.effect != "noise" and f.model is not None), None)
         if chosen is None:
-            break
+            pair = pair_step(current, findings, candidates, fit, det, cfg, chain, noise) if not steps else None
+            if pair is None:
+                break
+            for f, model in pair:
+                steps.append(ChainStep(f, model, None))
+                log.info("cause %d (pair look-ahead): %s (effect size %.3f, p %.2g)", len(steps), f.effect, f.effect_size, f.p_value)
+            current = pair[-1][1]
+            chosen_names = {f.effect for f, _ in pair}
+            candidates = tuple(e for e in candidates if e not in chosen_names)
+            if len(steps) >= chain.max_causes or not candidates:
+                if with_noise:
+                    noise = next(f for f in test_effects(current, fit, det, cfg, ("noise",)) if f.effect == "noise")
+                break
+            continue
         model = chosen.model if not steps else joint_refit(chosen.model, current, fit, det, chain)
         steps.append(ChainStep(chosen, model, disc))
         log.info("cause %d: %s (effect size %.3f, p %.2g)", len(steps), chosen.effect, chosen.effect_size, chosen.p_value)
@@ -204,6 +220,50 @@ def select_causes(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: De
         final = result.steps[-1].model
         result.without = [without_cause(final, st.finding.effect, base, fit, det, chain) for st in result.steps]
     return result
+
+
+def pair_step(current: BaseModel, findings: list[Finding], candidates: tuple[str, ...], fit: list[Sample], det: list[Sample],
+              cfg: DetectConfig, chain: ChainConfig, noise: Finding | None) -> list[tuple[Finding, BaseModel]] | None:
+    """A look-ahead of two when no single effect is detected against the base model: two effects that each
+    need the other (a focus offset and a bright rim; alone, each makes some detection pairs worse) are
+    screened as a pair.
+
+    Runs only when an effect is *promising*: its effect size exceeds its threshold but its p-value does not
+    pass (on clean data no effect comes near the threshold, so nothing is tried there). The most promising
+    effect P's fitted model is the reference for every other candidate (:func:`detect.test_effects`); the
+    strongest detected one E, refitted together with P, is then tested as a pair against ``current``: the
+    pair is taken (P first, then E) when its per-pair log MSE ratios pass the signed-rank test and it removes
+    more than the larger of the two thresholds of ``current``'s systematic error. The exchange step
+    (:func:`exchange_causes`) re-examines both.
+
+    Returns:
+        [(P's finding, its model), (the pair's finding for E, the pair's model)], or None.
+    """
+    promising = [f for f in findings if not f.detected and f.testable and f.effect != "noise" and f.model is not None
+                 and f.effect in candidates and f.effect_size > cfg.threshold(f.effect)]
+    if not promising:
+        return None
+    lead = max(promising, key=lambda f: f.effect_size)
+    others = tuple(e for e in candidates if e != lead.effect)
+    if not others:
+        return None
+    inner = test_effects(lead.model, fit, det, cfg, others)
+    second = next((f for f in inner if f.detected and f.effect != "noise" and f.model is not None), None)
+    if second is None:
+        log.info("pair look-ahead from %s (effect %.3f, p %.2g): nothing detected beside it", lead.effect, lead.effect_size, lead.p_value)
+        return None
+    pair_model = joint_refit(second.model, lead.model, fit, det, chain)
+    cur_su, cur_co, owners = tile_mse(current, det, cfg.tile_px)
+    su = tile_mse(pair_model, det, cfg.tile_px)[0]
+    t, p = effect_test(clustered_delta(cur_su, su, cur_co, owners))
+    effect = float((cur_su.sum() - su.sum()) / max(systematic_sse(float(cur_su.sum()), det, noise, cfg), 1e-20))
+    ok = p < cfg.alpha and effect > max(cfg.threshold(lead.effect), cfg.threshold(second.effect))
+    log.info("pair look-ahead %s + %s against the model before: effect %.3f p %.2g -> %s", lead.effect, second.effect, effect, p,
+             "taken" if ok else "not taken")
+    if not ok:
+        return None
+    pair_finding = Finding(second.effect, t, p, effect, True, second.params, second.explanation, pair_model, su, second.held)
+    return [(lead, lead.model), (pair_finding, pair_model)]
 
 
 def without_cause(model: BaseModel, name: str, base: BaseModel, fit: list[Sample], det: list[Sample], cfg: ChainConfig) -> BaseModel:
