@@ -296,7 +296,9 @@ def render_raytrace(sharp: Tensor, coc_px: Tensor, valid: Tensor, max_points_sid
 
     Runs on the CPU (inputs on another device are copied there and the views copied back): ray weights in
     float64, the accumulated views in float64 for float64 input and float32 otherwise (half the memory
-    traffic; 3e-6 from float64 sums on a 1680 x 1120 studio pair with |CoC| up to 73 px). Returns the input's dtype. Each image of the batch is rendered on its own.
+    traffic; 3e-6 from float64 sums on a 1680 x 1120 studio pair with |CoC| up to 73 px). Returns the
+    input's dtype. Each image of the batch is rendered on its own. The first call on a machine compiles the
+    kernel (numba, about 6 s per dtype), later calls and processes load it from numba's cache.
 
     Args:
         sharp: (B, C, H, W) linear image.
