@@ -254,8 +254,14 @@ def _compiled_splat() -> Callable[..., None]:
     compiled once per machine and then loaded from numba's on-disk cache)."""
     global _SPLAT, _prange
     if _SPLAT is None:
+        import os
+
         import numba
 
+        if "NUMBA_THREADING_LAYER" not in os.environ:
+            # numba tries TBB first; Open3D's older TBB makes it warn on every first render ("requires TBB 2021
+            # update 6") before it falls back to OpenMP, so go to OpenMP (libgomp, scripts/setup.sh) directly
+            numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
         _prange = numba.prange
         _SPLAT = numba.njit(cache=True, parallel=True, fastmath=False, nogil=True)(_splat_image_py)
     return _SPLAT
