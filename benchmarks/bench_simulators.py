@@ -179,6 +179,13 @@ def main(argv: list[str] | None = None) -> int:
           flush=True)
     for name in [n for n in args.simulators.split(",") if n]:
         sim = get_simulator(name).to(args.device).eval()
+        if name == "raytrace":  # numba compiles once per machine and code version, then loads from its disk cache
+            tiny = scene(16, 12, args.device)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                sim(tiny)
+            print(f"| raytrace: compile or load the numba kernel (once per process, not per pair) | 16x12 | | "
+                  f"{time.perf_counter() - t0:.2f} | | {stamp()} |", flush=True)
         sync(args.device)
         t0 = time.perf_counter()
         with torch.no_grad():  # one cold call, as `dp5k evaluate --max-pairs 1` times it (seconds_per_pair)
