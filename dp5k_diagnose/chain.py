@@ -34,7 +34,7 @@ from neural_dp.simulators.base.components import fittable_names
 from neural_dp.simulators.base.fit import parameter_intervals
 
 from .data import Sample
-from .detect import (PSF_NUISANCE, DetectConfig, Discrimination, Finding, clustered_delta, discriminate, effect_test, explanation,
+from .detect import (PSF_NUISANCE, DetectConfig, Discrimination, Finding, _finite, clustered_delta, discriminate, effect_test, explanation,
                      fit_effect, keep_rim_if_better, masked_mse, systematic_sse, test_effects, tile_mse)
 
 log = logging.getLogger(__name__)
@@ -92,8 +92,8 @@ class Exchange:
     findings: list[Finding] = field(default_factory=list, repr=False)
 
     def to_json(self) -> dict[str, object]:
-        return {"slot": self.slot, "action": self.action, "by": self.by or None, "effect_size": float(self.effect_size),
-                "p_value": float(self.p_value),
+        return {"slot": self.slot, "action": self.action, "by": self.by or None, "effect_size": _finite(self.effect_size),
+                "p_value": _finite(self.p_value, 1.0),
                 "tests": [{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in self.findings]}
 
 
