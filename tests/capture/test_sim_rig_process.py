@@ -53,10 +53,17 @@ def server(tmp_path: Path) -> Iterator[Path]:
         proc.wait(10)
 
 
+def _default_sigint() -> None:
+    """In the client before exec: SIGINT interrupts, as in a terminal. A test run started in the background
+    of a non-interactive shell (``make test &``) ignores SIGINT, and an ignored signal stays ignored across
+    exec, so the client would never see the test's Ctrl-C."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _capture(sock: Path, out: Path, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "dp5k_cli", "capture", "--scene", "s1", "--out", str(out),
                              "--sim-rig", str(sock), *extra], cwd=REPO, env=ENV, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, preexec_fn=_default_sigint)
 
 
 def _hashes(session: Path) -> dict[str, str]:
