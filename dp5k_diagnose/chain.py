@@ -28,6 +28,8 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from dp5k_common.effects import EFFECT_NAMES
 from neural_dp.simulators.base import BaseModel, fit_parameters
 from neural_dp.simulators.base.components import fittable_names
@@ -188,38 +190,51 @@ def select_causes(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: De
             pair = pair_step(current, findings, candidates, fit, det, cfg, chain, noise) if not steps else None
             if pair is None:
                 break
-            for f, model in pair:
-                steps.append(ChainStep(f, model, None))
-                log.info("cause %d (pair look-ahead): %s (effect size %.3f, p %.2g)", len(steps), f.effect, f.effect_size, f.p_value)
-            current = pair[-1][1]
-            chosen_names = {f.effect for f, _ in pair}
-            candidates = tuple(e for e in candidates if e not in chosen_names)
-            if len(steps) >= chain.max_causes or not candidates:
-                if with_noise:
-                    noise = next(f for f in test_effects(current, fit, det, cfg, ("noise",)) if f.effect == "noise")
-                break
-            continue
-        model = chosen.model if not steps else joint_refit(chosen.model, current, fit, det, chain)
-        steps.append(ChainStep(chosen, model, disc))
-        log.info("cause %d: %s (effect size %.3f, p %.2g)", len(steps), chosen.effect, chosen.effect_size, chosen.p_value)
-        current = model
-        candidates = tuple(f.effect for f in findings if f.effect not in ("noise", chosen.effect) and f.testable
-                           and f.effect_size > chain.retest_min_effect)
+            new = [ChainStep(f, model, None) for f, model in pair]
+            taken = {st.finding.effect for st in new}
+            candidates = tuple(e for e in candidates if e not in taken)
+        else:
+            model = chosen.model if not steps else joint_refit(chosen.model, current, fit, det, chain)
+            new = [ChainStep(chosen, model, disc)]
+            candidates = tuple(f.effect for f in findings if f.effect not in ("noise", chosen.effect) and f.testable
+                               and f.effect_size > chain.retest_min_effect)
+        for st in new:
+            steps.append(st)
+            log.info("cause %d: %s (effect size %.3f, p %.2g)%s", len(steps), st.finding.effect, st.finding.effect_size,
+                     st.finding.p_value, " (pair look-ahead)" if chosen is None else "")
+        current = steps[-1].model
         if len(steps) >= chain.max_causes or not candidates:
             if with_noise:  # noise measured against the final model
-                noise = next(f for f in test_effects(current, fit, det, cfg, ("noise",)) if f.effect == "noise")
+                noise = measure_noise(current, fit, det, cfg)
             break
     result = Chain(steps, first or [], first_disc, noise, all_findings, forward_order=[s.finding.effect for s in steps])
     if len(steps) >= 2 and chain.exchange_passes > 0:
         result = exchange_causes(result, base, fit, det, cfg, chain, tuple(e for e in effects if e != "noise"))
         if with_noise and result.forward_order != [s.finding.effect for s in result.steps]:  # noise against the new final model
-            result.noise = next(f for f in test_effects(result.steps[-1].model, fit, det, cfg, ("noise",)) if f.effect == "noise")
+            result.noise = measure_noise(result.steps[-1].model, fit, det, cfg)
     if len(result.steps) == 1:
         result.without = [base]
-    elif result.steps:
+    elif result.steps and not result.without:
         final = result.steps[-1].model
         result.without = [without_cause(final, st.finding.effect, base, fit, det, chain) for st in result.steps]
     return result
+
+
+def measure_noise(model: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig) -> Finding:
+    """The ``noise`` finding measured against ``model`` (its residual and systematic error)."""
+    return next(f for f in test_effects(model, fit, det, cfg, ("noise",)) if f.effect == "noise")
+
+
+def step_statistics(prev: BaseModel, model: BaseModel, det: list[Sample], cfg: DetectConfig,
+                    noise: Finding | None) -> tuple[float, float, float, np.ndarray]:
+    """How much ``model`` improves on ``prev`` on the detection pairs, as :func:`detect.test_effects` judges an
+    effect: (signed-rank statistic, p-value, effect size as a share of ``prev``'s systematic error, ``model``'s
+    per-tile squared errors)."""
+    prev_su, prev_co, owners = tile_mse(prev, det, cfg.tile_px)
+    su = tile_mse(model, det, cfg.tile_px)[0]
+    t, p = effect_test(clustered_delta(prev_su, su, prev_co, owners))
+    effect = float((prev_su.sum() - su.sum()) / max(systematic_sse(float(prev_su.sum()), det, noise, cfg), 1e-20))
+    return t, p, effect, su
 
 
 def pair_step(current: BaseModel, findings: list[Finding], candidates: tuple[str, ...], fit: list[Sample], det: list[Sample],
@@ -253,10 +268,7 @@ def pair_step(current: BaseModel, findings: list[Finding], candidates: tuple[str
         log.info("pair look-ahead from %s (effect %.3f, p %.2g): nothing detected beside it", lead.effect, lead.effect_size, lead.p_value)
         return None
     pair_model = joint_refit(second.model, lead.model, fit, det, chain)
-    cur_su, cur_co, owners = tile_mse(current, det, cfg.tile_px)
-    su = tile_mse(pair_model, det, cfg.tile_px)[0]
-    t, p = effect_test(clustered_delta(cur_su, su, cur_co, owners))
-    effect = float((cur_su.sum() - su.sum()) / max(systematic_sse(float(cur_su.sum()), det, noise, cfg), 1e-20))
+    t, p, effect, su = step_statistics(current, pair_model, det, cfg, noise)
     ok = p < cfg.alpha and effect > max(cfg.threshold(lead.effect), cfg.threshold(second.effect))
     log.info("pair look-ahead %s + %s against the model before: effect %.3f p %.2g -> %s", lead.effect, second.effect, effect, p,
              "taken" if ok else "not taken")
@@ -294,13 +306,17 @@ def exchange_causes(chain: Chain, base: BaseModel, fit: list[Sample], det: list[
     mse = masked_mse(model, det)
     exchanges: list[Exchange] = []
     chosen_finding: dict[str, Finding] = {s.finding.effect: s.finding for s in chain.steps}
+    reduced_of: dict[str, BaseModel] = {}
+    """The current final model without each cause, as this pass computed it (a change empties it)."""
     for _ in range(chain_cfg.exchange_passes):
         changed = False
+        reduced_of = {}
         for name in list(names):
             if name not in names or len(names) < 2:
                 continue
             others = [n for n in names if n != name]
             reduced = without_cause(model, name, base, fit, det, chain_cfg)
+            reduced_of[name] = reduced
             pool = tuple(e for e in candidates if e not in others)
             findings = test_effects(reduced, fit, det, cfg, pool)
             discriminate(findings, reduced, fit, det, cfg)
@@ -309,6 +325,7 @@ def exchange_causes(chain: Chain, base: BaseModel, fit: list[Sample], det: list[
             if win is None:
                 names.remove(name)
                 model, mse, changed = reduced, masked_mse(reduced, det), True
+                reduced_of = {}
                 exchanges.append(Exchange(name, "dropped", "", own.effect_size if own else 0.0, own.p_value if own else 1.0, findings))
                 log.info("exchange: %s dropped (nothing detected without it)", name)
                 continue
@@ -319,6 +336,7 @@ def exchange_causes(chain: Chain, base: BaseModel, fit: list[Sample], det: list[
                     names[names.index(name)] = win.effect
                     chosen_finding[win.effect] = win
                     model, mse, changed = cand, cand_mse, True
+                    reduced_of = {}
                     exchanges.append(Exchange(name, "replaced", win.effect, win.effect_size, win.p_value, findings))
                     log.info("exchange: %s replaced by %s (detection MSE %.4g)", name, win.effect, cand_mse)
                     continue
@@ -326,11 +344,16 @@ def exchange_causes(chain: Chain, base: BaseModel, fit: list[Sample], det: list[
                                       own.p_value if own else win.p_value, findings))
         if not changed:
             break
+    # a last pass that changed nothing left the final model without each cause: what Chain.without holds
+    without = [reduced_of[n] for n in names] if len(names) >= 2 and set(reduced_of) == set(names) else []
     if [s.finding.effect for s in chain.steps] == names:
         chain.exchanges = exchanges
+        chain.without = [reduced_of[s.finding.effect] for s in chain.steps] if without else []
         return chain
     steps = ordered_steps(names, model, base, chain.first_findings, chosen_finding, fit, det, cfg, chain_cfg)
-    return Chain(steps, chain.first_findings, chain.first_discrimination, chain.noise, chain.step_findings, exchanges, chain.forward_order)
+    order = [st.finding.effect for st in steps]
+    return Chain(steps, chain.first_findings, chain.first_discrimination, chain.noise, chain.step_findings, exchanges,
+                 chain.forward_order, [reduced_of[n] for n in order] if without else [])
 
 
 def ordered_steps(names: list[str], final: BaseModel, base: BaseModel, first: list[Finding], chosen: dict[str, Finding],
@@ -355,10 +378,7 @@ def ordered_steps(names: list[str], final: BaseModel, base: BaseModel, first: li
     steps: list[ChainStep] = []
     prev = base
     for name, model in zip(order, models):
-        prev_su, prev_co, owners = tile_mse(prev, det, cfg.tile_px)
-        su = tile_mse(model, det, cfg.tile_px)[0]
-        t, p = effect_test(clustered_delta(prev_su, su, prev_co, owners))
-        effect = float((prev_su.sum() - su.sum()) / max(systematic_sse(float(prev_su.sum()), det, noise, cfg), 1e-20))
+        t, p, effect, su = step_statistics(prev, model, det, cfg, noise)
         comp = final.component(name)
         params = comp.describe()
         src = chosen.get(name)

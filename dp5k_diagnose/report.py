@@ -164,9 +164,9 @@ def causes_lines(result: dict[str, Any]) -> list[str]:
             par = ", ".join(f"{k}={_num(v)}" + (f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else "")
                             for k, v in c["params"].items() if isinstance(v, float))
             lo, hi = c["gain_ci_db"]
-            slo, shi = c.get("step_gain_ci_db", c["gain_ci_db"])
+            slo, shi = c["step_gain_ci_db"]
             lines.append(f"| {c['step']} | `{c['name']}` | {c['effect_size']:.3f} | {c['p_value']:.2g} | {c['gain_db']:+.3f} [{lo:+.3f}, {hi:+.3f}] "
-                         f"| {c.get('step_gain_db', c['gain_db']):+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
+                         f"| {c['step_gain_db']:+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
         lines.append("")
     lines += exchange_lines(result.get("selection") or {}, [c["name"] for c in causes if c["name"] != "noise"])
     nm = result.get("noise_model") or {}

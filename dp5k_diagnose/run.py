@@ -246,11 +246,11 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
     held = reading.apply(full_samples(load_pairs(reader, splits[gain_split])))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
-    step_metrics = [pair_metrics_by_mask(lambda s, m=st.model: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
-                    for st in chain.steps]
-    without_metrics = [before["predictable"] if m is base else
-                       pair_metrics_by_mask(lambda s, m=m: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
-                       for m in chain.without]
+    def predictable(m: BaseModel) -> PairMetrics:
+        return pair_metrics_by_mask(lambda s: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
+
+    step_metrics = [predictable(st.model) for st in chain.steps]
+    without_metrics = [before["predictable"] if m is base else predictable(m) for m in chain.without]
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
     gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
     g_all = gain_report(before["valid"], after["valid"], gain_split, cfg.n_boot, cfg.seed, "valid")
