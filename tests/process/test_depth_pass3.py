@@ -17,6 +17,7 @@ from dp5k_process.triangulate import (CentroidMap, CodeView, TriangulationConfig
                                       depth_from_match, match_in_other, midpoint_depth)
 
 from . import depth_before_pass3 as before
+from .scene_steps import calibrated_and_decoded
 from .test_depth_stages import plane_capture  # noqa: F401  (the module-scoped fixture)
 
 
@@ -145,8 +146,7 @@ def test_projector_correspondences_equal_before(max_points):
 @pytest.mark.slow
 def test_depth_for_camera_equals_before(tmp_path_factory):
     """The whole depth step of both cameras (shared views as ``process_scene`` shares them) equals a50fa0b's."""
-    from dp5k_process.graycode import GrayCodeConfig
-    from dp5k_process.pipeline import calibrate_session, decode_camera, depth_for_camera, read_main
+    from dp5k_process.pipeline import depth_for_camera
     from dp5k_process.session import load_session
     from dp5k_testing.sim_session import write_session
 
@@ -154,10 +154,7 @@ def test_depth_for_camera_equals_before(tmp_path_factory):
     write_session(root, "wall", f_numbers=(1.8,), board_on_wall=True)
     session = load_session(root / "wall")
     cfg = ProcessConfig()
-    probe = read_main(session, session.cameras["cam0"].sl[-1])[0]
-    st, _ = calibrate_session(session, cfg, (probe.shape[1], probe.shape[0]))
-    gcfg = cfg.gray or GrayCodeConfig.for_linear_raw(*session.projector_size)
-    decs = {c: decode_camera(session, c, gcfg)[0] for c in ("cam0", "cam1")}
+    st, decs = calibrated_and_decoded(session, cfg)
     cache: dict = {}
     for cam in ("cam0", "cam1"):
         new, info = depth_for_camera(decs, cam, st, cfg, cache)

@@ -13,12 +13,13 @@ import pytest
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import PartialFailureError
 from dp5k_process.package import process_sessions
-from dp5k_process.graycode import GrayCodeConfig
-from dp5k_process.pipeline import ProcessConfig, calibrate_session, decode_camera, depth_for_camera, read_main
+from dp5k_process.pipeline import ProcessConfig, depth_for_camera
 from dp5k_process.refine import refine_stereo
 from dp5k_process.session import load_session
 from dp5k_process.validate import plane_error, validate_depth
 from dp5k_testing.torchrun import run_torchrun
+
+from .scene_steps import calibrated_and_decoded
 from dp5k_testing.sim_session import assert_depth_and_focus, capture_and_process, wall_scene, write_session
 from dp5k_testing.truth import half, seen_by_both
 
@@ -222,10 +223,7 @@ def test_shared_code_views_give_the_same_depth(wall_session):
     root, _ = wall_session
     session = load_session(root / "wall")
     cfg = ProcessConfig()
-    probe = read_main(session, session.cameras["cam0"].sl[-1])[0]
-    st, _ = calibrate_session(session, cfg, (probe.shape[1], probe.shape[0]))
-    gcfg = cfg.gray or GrayCodeConfig.for_linear_raw(*session.projector_size)
-    decs = {c: decode_camera(session, c, gcfg)[0] for c in ("cam0", "cam1")}
+    st, decs = calibrated_and_decoded(session, cfg)
     cache: dict = {}
     st, _, _ = refine_stereo(decs, st, cfg.tri, cfg.refine, cache=cache)
     assert {c for c, _ in cache} == {"cam0", "cam1"}
