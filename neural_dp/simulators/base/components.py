@@ -94,6 +94,8 @@ class FieldVaryingPSF(Component):
     """Blur grows off axis and the split softens toward the field edges (half-moons become ellipses)."""
 
     name = "field_varying_psf"
+    post_params = ("edge_leak",)
+    """Parameters only the :meth:`post` hook reads (a fit's Jacobian reuses one layered render for them)."""
 
     def __init__(self) -> None:
         super().__init__()
