@@ -144,11 +144,14 @@ def test_pairs_where_two_models_agree_do_not_vote() -> None:
     su_without = su_with * np.exp(np.r_[np.full(6, 1.0), np.full(8, -1e-4)])
     diff = np.r_[np.full(6, 0.5), np.full(8, 1e-6)]
     noise = np.ones(14)
-    informed = informed_test("x", su_without, su_with, diff, noise, np.full(14, 96.0), owners, systematic=10.0)
+    informed = informed_test("x", su_without, su_with, diff, noise, np.full(14, 96.0), owners)
     assert informed.p_value < 0.05 and informed.effect_size > 0
     _, p_all = tiles.effect_test(tiles.clustered_delta(su_without, su_with, np.full(14, 96.0), owners))
     assert p_all > 0.05
-    assert informed_test("x", su_without, su_with, np.zeros(14), noise, np.full(14, 96.0), owners, 10.0).p_value == 1.0
+    assert informed_test("x", su_without, su_with, np.zeros(14), noise, np.full(14, 96.0), owners).p_value == 1.0
+    # the effect size is a share of what the model without the effect leaves beyond noise
+    got = informed_test("x", np.full(14, 3.0), np.full(14, 2.0), diff, noise, np.full(14, 96.0), owners).effect_size
+    assert got == pytest.approx((42 - 28) / (42 - 14))
 
 
 def test_noise_on_too_little_data_is_a_plain_non_finding() -> None:
