@@ -39,10 +39,16 @@ def _depth_error(out: Path, cap: SLCapture) -> float:
     return float(np.median((d[ok] - cap.depth_m[ok]) / cap.depth_m[ok]))
 
 
-def test_true_calibration_fits_is_not_refined_and_says_so(capture: SLCapture, tmp_path: Path) -> None:
+def test_true_calibration_fits_is_not_refined_and_says_so(capture: SLCapture, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import dp5k_common.progress as progress
+
+    monkeypatch.setattr(progress, "_enabled", True)  # as for a user at a terminal (no -q)
     cal = capture.write_calibration(tmp_path / "true.yaml")
-    code, out = _run(str(capture.images), str(cal), str(tmp_path / "o"), "--projector", PROJ)
+    res = CliRunner().invoke(main, ["sl-depth", str(capture.images), str(cal), str(tmp_path / "o"), "--projector", PROJ])
+    code, out = res.exit_code, res.output
     assert code == 0, out
+    assert "sl-depth: decode" in out and "72/74" in out  # the progress bar: 2 x 36 images, then check and depth
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     ref = rep["refinement"]
     assert not ref["triggered"] and not ref["failed"] and not rep["quality"]["low"]
