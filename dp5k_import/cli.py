@@ -86,11 +86,8 @@ def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int,
     is never overwritten. OUT gets report.md, report.json and previews/<source>.png. An OUT that is a file, lies
     under a file or cannot be written is refused before anything is read (exit 3).
     """
-    from dp5k_common.outdir import check_out_dir
-
     from .sources import import_dataset
 
-    check_out_dir(out, create=False, option="OUT")
     if not src.exists():
         raise BadInputError("source folder not found", where=src)
     size: tuple[int, int] | None | str = "default"

@@ -443,11 +443,12 @@ def check_and_refine(m: Matches, st: StereoCalibration, tri: TriangulationConfig
     """:func:`refine_stereo` on given correspondences: ``m.x0`` in ``st.cam0``, ``m.x1`` in ``st.cam1`` (which may be
     a projector, for a camera-projector rig).
 
-    The report's ``refinement`` always gives the gate's pass rate and the median (and p90) epipolar error of the
-    matches with the given calibration; when refined, both fits (``three_parameters``, ``five_parameters``: pose,
-    epipolar errors, gate pass rate; the five's flatness and the formal standard deviations of its two extra
-    parameters) and ``depth_ratio_five_to_three``; ``failed`` (with ``failed_why``) when the calibration used
-    still does not fit the matches.
+    The report's ``refinement`` always gives the gate's pass rate, the median and p90 epipolar error of the matches
+    and its systematic part, with the given calibration (``*_given``) and the one used; when refined, both fits
+    (``three_parameters``, ``five_parameters``: pose, epipolar errors, gate pass rate; the five's flatness, the
+    formal standard deviations of its two extra parameters and the depth-scale uncertainty they leave, whether it
+    was used and why not; ``free_fit`` repeats the five's numbers under their earlier name); ``failed`` (with
+    ``failed_why``) when the calibration used does not fit the matches; ``match_depth_m``, the matches' depths.
     """
     rate0, cov0 = gate_stats(m, st, tri)
     idx = np.arange(len(m.x0))
