@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 
 @click.command("capture")
 @click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
-@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("raw"), show_default=True,
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("raw"), show_default=True,
               help="Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is writable); an unwritable OUT is refused before any device is touched.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
@@ -86,26 +86,54 @@ def _kept(session_dir: Path) -> str:
 
 
 @click.command("devices")
+@click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="rig.toml: names the bodies (cam0/cam1 by serial) and the projector's port, which is then asked over ESC/VP21.")
 @click.option("--sim", is_flag=True, help="List the simulated rig's devices instead.")
-def devices_command(sim: bool) -> None:
-    """List Canon bodies (USB vendor 04a9, serial numbers) and serial ports for the projector."""
+@click.option("--sim-faults", default="", help="Faults of the simulated bodies, as for capture (e.g. 'cam1.denied', 'cam0.held').")
+@click.option("--udev-rule", is_flag=True, help="Print dp5k's udev rules file and exit; install it with "
+              "dp5k devices --udev-rule | sudo tee /etc/udev/rules.d/60-dp5k.rules.")
+def devices_command(rig_path: Path | None, sim: bool, sim_faults: str, udev_rule: bool) -> None:
+    """List every Canon body (model, serial, device node, permission, battery, card free space, who holds it) and
+    the serial ports for the EPSON projector (permission, holder; the rig's port is asked for serial and power)."""
+    from .device_report import probe_body, probe_port
     from .devices import find_bodies, serial_ports
+    from .rig import RigConfig, load_rig
+    from .usb_access import udev_rule_path
 
+    if udev_rule:
+        click.echo(udev_rule_path().read_text(), nl=False)
+        return
+    if sim_faults and not sim:
+        raise BadInputError("fault injection needs the simulated rig (--sim)", where="--sim-faults")
+    rig = load_rig(rig_path) if rig_path else RigConfig()
     closer = None
     if sim:
         from .sim.world import make_sim_rig
 
-        s = make_sim_rig()
-        bodies, ports, closer = find_bodies(s.backend), [f"{s.rig.projector.port}  simulated EPSON EB-U42 (ESC/VP21)"], s.close
+        s = make_sim_rig(rig, faults=sim_faults)
+        rig, closer = s.rig, s.close
+        bodies, ports, query = find_bodies(s.backend), [(s.rig.projector.port, "simulated EPSON EB-U42 (ESC/VP21)")], {s.rig.projector.port}
     else:
-        bodies, ports = find_bodies(), serial_ports()
+        bodies = find_bodies()
+        ports = [(p.split("  ", 1)[0], p.split("  ", 1)[-1]) for p in serial_ports()]
+        query = {rig.projector.port} if rig_path else set()
+        if rig_path and rig.projector.port not in {p for p, _ in ports}:
+            ports.append((rig.projector.port, "the projector port named in rig.toml"))
+    ids = {b.serial: b.id for b in rig.bodies if b.serial}
     try:
         click.echo(f"Canon bodies ({len(bodies)}):")
-        for b in bodies:
-            click.echo(f"  {b.line()}")
-        click.echo(f"serial ports ({len(ports)}) for the projector:")
-        for p in ports:
-            click.echo(f"  {p}")
+        for found in bodies:
+            lines = probe_body(found).lines()
+            cam = ids.get(found.serial)
+            click.echo(f"  {cam + ': ' if cam else ''}{lines[0]}")
+            for line in lines[1:]:
+                click.echo(f"  {line}")
+        click.echo(f"EPSON projector: serial ports ({len(ports)}):")
+        for port, desc in ports:
+            for i, line in enumerate(probe_port(port, desc, query=port in query).lines()):
+                click.echo(f"  {line}")
+        if not query:
+            click.echo("  (the projector is asked for its serial number and power on the port that --rig names)")
     finally:
         if closer:
             closer()
