@@ -299,13 +299,24 @@ class EosCamera:
                 while time.monotonic() < deadline:
                     self.poll_events()
                     time.sleep(self.timing.poll_s)
-        finally:
-            self.session.transaction(Op.EOS_AF_CANCEL)
-            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        except BaseException:
+            self._end_af(quiet=True)  # AfCancel and live view off, without hiding what stopped the AF (Ctrl-C too)
+            raise
+        self._end_af()
         if self.state.focus == FOCUS_FAILED:
             raise DeviceError(f"autofocus at ({x}, {y}) px failed: the body found no focus there (low contrast, closer "
                               "than the lens focuses, or lens switch on MF); capture stops before any shot of this run", where=self.name)
         self.focus_point_px = (x, y)
+
+    def _end_af(self, quiet: bool = False) -> None:
+        """AfCancel, then live view off; ``quiet``: a failure is logged, not raised (an error is already in flight)."""
+        try:
+            self.session.transaction(Op.EOS_AF_CANCEL)
+            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        except DeviceError as exc:
+            if not quiet:
+                raise
+            log.warning("%s: ending the AF after an interruption: %s", self.name, exc)
 
     def lock_focus(self) -> dict[str, object]:
         """Keep the focus of the last AF: FocusMode (0xD108) = MF where the body offers it, confirmed by its events.

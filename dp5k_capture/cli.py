@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
+import threading
+import _thread
+from collections.abc import Iterator
 from pathlib import Path
 
 import click
@@ -10,6 +15,8 @@ import click
 from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 
 log = logging.getLogger(__name__)
+
+CTRL_C_AGAIN_S = 0.05  # a Ctrl-C swallowed by a finalizer is delivered again this much later
 
 
 @click.command("capture")
@@ -67,22 +74,50 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
     scale = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
     spec = SimSpec(scale, seed, faults=sim_faults, server=sim_rig) if sim else None
     try:
-        result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+        with ctrl_c_from_finalizers():
+            result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
     except (KeyboardInterrupt, click.exceptions.Abort):  # click.prompt turns a Ctrl-C at the board prompt into Abort
-        click.echo(f"dp5k: interrupted: {_kept(out / scene)}; run the same command again to resume", err=True)
+        click.echo(f"dp5k: interrupted: {_kept(out / scene)}", err=True)
         click.get_current_context().exit(130)
     click.echo(f"{result.dir}: complete ({result.written} files captured now)")
 
 
+@contextlib.contextmanager
+def ctrl_c_from_finalizers() -> Iterator[None]:
+    """A Ctrl-C that lands while the garbage collector runs a finalizer (a weakref callback, a ``__del__``) is
+    "ignored" by Python, which prints its traceback on stderr and goes on. Deliver it to the main thread again
+    instead (from a timer thread, so it arrives after the finalizer, not inside this hook), so it ends the
+    command like any Ctrl-C: one line, exit code 130."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            again = threading.Timer(CTRL_C_AGAIN_S, _thread.interrupt_main)
+            again.daemon = True
+            again.start()
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def _kept(session_dir: Path) -> str:
-    """What an interrupted capture left: the completed files recorded in the manifest."""
+    """What an interrupted capture left (the completed files the manifest records) and what to do."""
     from dp5k_common.io import read_json
 
     try:
-        n = len(read_json(session_dir / "manifest.json").get("files", []))
+        manifest = read_json(session_dir / "manifest.json")
+        n, complete = len(manifest.get("files", [])), bool(manifest.get("complete"))
     except (DP5KError, OSError, AttributeError):
-        n = 0
-    return f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
+        n, complete = 0, False
+    if complete:  # the Ctrl-C came after the session was marked complete
+        return f"{session_dir} is complete ({n} files); nothing to resume"
+    kept = f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
+    return f"{kept}; run the same command again to resume"
 
 
 @click.command("devices")

@@ -20,6 +20,7 @@ from importlib import resources
 from pathlib import Path
 
 USB_DEVFS = "/dev/bus/usb"
+PROC_ROOT = Path("/proc")  # where holders are looked up (tests point it at a fake tree)
 UDEV_RULE_NAME = "60-dp5k.rules"
 UDEV_RULE_DEST = f"/etc/udev/rules.d/{UDEV_RULE_NAME}"
 USUAL_HOLDERS = "gvfs-gphoto2-volume-monitor (GNOME's camera automount), a gphoto2 command or gphotofs mount, or another dp5k"
@@ -85,15 +86,15 @@ class Holder:
         return f"{what} (pid {self.pid}: {self.cmdline or self.name})"
 
 
-def holders(node: str, proc: Path = Path("/proc")) -> list[Holder]:
+def holders(node: str, proc: Path | None = None) -> list[Holder]:
     """Processes with ``node`` open, found through ``/proc/<pid>/fd/*`` links.
 
     Only processes whose fd folder this user may read are seen (its own; all of them for root); the
-    others are skipped silently. ``proc`` is injectable for tests.
+    others are skipped silently. ``proc`` defaults to :data:`PROC_ROOT`.
     """
     found: list[Holder] = []
     try:
-        pids = [e for e in os.scandir(proc) if e.name.isdigit()]
+        pids = [e for e in os.scandir(proc or PROC_ROOT) if e.name.isdigit()]
     except OSError:
         return found
     for entry in pids:
@@ -129,7 +130,7 @@ def access_denied_message(node: str) -> str:
             f"04a9); install dp5k's rule: {udev_install_commands()}")
 
 
-def holder_text(node: str, proc: Path = Path("/proc")) -> str:
+def holder_text(node: str, proc: Path | None = None) -> str:
     """Who holds ``node`` (other than this process): the processes /proc shows, else the usual suspects."""
     found = [h for h in holders(node, proc) if h.pid != os.getpid()]
     if found:
@@ -141,7 +142,7 @@ RELEASE_HINT = ("quit it (gvfs: systemctl --user stop gvfs-gphoto2-volume-monito
                 "the file manager; gphoto2: end the command or fusermount -u the gphotofs mount) and run again")
 
 
-def busy_message(node: str, proc: Path = Path("/proc")) -> str:
+def busy_message(node: str, proc: Path | None = None) -> str:
     """What to say when the interface is claimed by someone else: the holder if /proc shows it, else the usual ones."""
     return f"{node} is busy (Resource busy): held by {holder_text(node, proc)}; {RELEASE_HINT}"
 

@@ -110,7 +110,8 @@ class BodyFaults:
         af_result: what DoAf reports in OLC focus info: ``ok`` (in focus), ``fail`` (AF failed), ``silent`` (nothing).
         busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``);
             ``busy_answers`` counts them.
-        full_from_release: the card is full from this release number on (``--sim-faults full@K``).
+        full_from_release: the release (counted over the body's life) that finds the card full, and every one
+            after it (``--sim-faults full@K``); the card reports no free space once the next release would fail.
         focus_mode_fixed: the PC cannot set FocusMode (as on a body whose lens switch decides it).
     """
 
@@ -272,13 +273,14 @@ class SimulatedEOS:
         return fixed | ({EosProp.FOCUS_MODE} if self.faults.focus_mode_fixed else set())
 
     def card_is_full(self) -> bool:
+        """No room for the next image (``card_full``, or the next release is ``full_from_release``)."""
         full_from = self.faults.full_from_release
-        return self.faults.card_full or (full_from is not None and self.releases >= full_from)
+        return self.faults.card_full or (full_from is not None and self.releases + 1 >= full_from)
 
     def _expose(self) -> Reply:
-        self.releases += 1
         if self.card_is_full():
             return Reply(Resp.STORE_FULL)
+        self.releases += 1
         if self.focus_distance_m is None:  # the lens sits wherever it was left: AF'd by an earlier run of this body
             self._autofocus(self.focus_point_px or self.lens_point_px)
         self.sequence += 1

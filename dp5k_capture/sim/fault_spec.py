@@ -9,7 +9,8 @@ the body sends from offset 0).
 ``stall@K``        bulk IN stalls when its K-th raw download starts (the client recovers and retries)
 ``hang@K``         the body stops sending halfway through its K-th raw download and never answers that
                    read (only meaningful with a sim-rig server: the client is then killed or Ctrl-C'd)
-``full@K``         the card is full from the K-th release on: the body answers StoreFull (0x200C)
+``full@K``         the card has room for K-1 more images: the K-th release and all later ones answer
+                   StoreFull (0x200C), and the card reports no free space from then on (at once for K = 1)
 ``busy=P``         every operation answers DeviceBusy with probability P (0..1)
 ``denied``         the body's USB device node cannot be opened by this user (EACCES: no udev rule)
 ``held``           another process has claimed the body's interface (EBUSY: gvfs, gphoto2, another dp5k)

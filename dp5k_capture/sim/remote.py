@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import mmap
+import os
 import threading
 from dataclasses import dataclass, replace
-from multiprocessing import resource_tracker, shared_memory
 from multiprocessing.connection import Client, Connection
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,8 @@ from dp5k_common.io import new_file_mode
 from ..display import PatternWindow
 from ..rig import RigConfig
 from .usb_backend import SimUsbBackend
+
+SHM_DIR = "/dev/shm"  # where POSIX shared memory lives on Linux
 
 
 class _Link:
@@ -126,16 +129,23 @@ class RemoteUsbDevice:
 
 
 class HdmiWindow:
-    """The client's headless :class:`PatternWindow`, its every frame copied into the server's HDMI framebuffer."""
+    """The client's headless :class:`PatternWindow`, its every frame copied into the server's HDMI framebuffer.
+
+    The server's shared-memory segment is mapped straight from ``/dev/shm`` (Linux), not attached through
+    ``multiprocessing.shared_memory``: Python 3.11 registers every attached segment with the resource tracker,
+    which unlinks it when this client exits, and a Ctrl-C between attaching and unregistering would remove
+    the server's framebuffer for every later client.
+    """
 
     def __init__(self, width: int, height: int, shm_name: str) -> None:
-        self.window = PatternWindow(width, height, display_index=0, settle_s=0.0, headless=True)
         self.width, self.height = width, height
-        self._shm = shared_memory.SharedMemory(name=shm_name)
-        # Python 3.11 registers an attached segment for unlinking at exit (or when this process is killed):
-        # the server owns it, and the next client must find it
-        resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
-        self._hdmi: NDArray[np.uint8] = np.ndarray((height, width), np.uint8, buffer=self._shm.buf)
+        fd = os.open(f"{SHM_DIR}/{shm_name.lstrip('/')}", os.O_RDWR)
+        try:
+            self._map = mmap.mmap(fd, width * height)
+        finally:
+            os.close(fd)
+        self._hdmi: NDArray[np.uint8] = np.ndarray((height, width), np.uint8, buffer=self._map)
+        self.window = PatternWindow(width, height, display_index=0, settle_s=0.0, headless=True)
 
     @property
     def shown(self) -> int | None:
@@ -151,7 +161,7 @@ class HdmiWindow:
     def close(self) -> None:
         self.window.close()
         del self._hdmi
-        self._shm.close()
+        self._map.close()
 
 
 class RemoteBoard:

@@ -89,6 +89,7 @@ class SimRigServer:
     def _status(self) -> dict[str, Any]:
         return {"hangs": self.hangs, "bodies": {c: {"downloads": d.downloads, "resets": d.resets, "queued_in": sum(map(len, d._in)),
                                                      "remote_mode": self.sim.bodies[c].remote_mode,
+                                                     "objects": len(self.sim.bodies[c].objects),
                                                      "event_mode": self.sim.bodies[c].event_mode}
                                                  for c, d in self.sim.usb_devices.items()}}
 
