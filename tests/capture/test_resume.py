@@ -12,12 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from dp5k_capture.ptp.codes import FOCUS_MODE_MF, EosProp, Op
 from dp5k_capture.ptp.errors import DisconnectedError
 from dp5k_capture.rawsession import plan_scene, verify_session
 from dp5k_capture.sim.fault_spec import BodyFaultPlan
 from dp5k_capture.sim.world import SimRig
+from dp5k_cli import main
 from dp5k_common.errors import DeviceError
 from dp5k_common.rawfile import read_dual_pixel
 
@@ -127,6 +129,9 @@ def test_a_resume_inside_the_charuco_sequence_reshoots_both_sides(sim_rig: SimRi
     kept = _interrupted(sim_rig, tmp_path, "cam1", 2)  # cam1 vanishes in charuco_1: cam0's charuco_1 is kept alone
     assert set(kept) == {"cam0/charuco_0.dng", "cam1/charuco_0.dng", "cam0/charuco_1.dng"}
     assert _manifest(tmp_path)["board_in_view"] == 1
+    res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(tmp_path), "--sim", "--dry-run"])
+    assert res.exit_code == 0 and "  resume: charuco_1: only cam0 kept: both sides re-shot" in res.output, res.output
+    assert "  resume: cam1: the image of charuco_1 cut off by the interruption is moved to quarantine/" in res.output
     client_run(sim_rig, tmp_path)
     m = _manifest(tmp_path)
     [q] = [q for q in m["quarantined"] if q["kind"] != "leftover"]
