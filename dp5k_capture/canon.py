@@ -4,9 +4,12 @@ Sequence (after libgphoto2's camera_prepare_canon_eos_capture / trigger / downlo
 docs/capture.md): OpenSession(1) with tid 0, GetDeviceInfo, SetRemoteMode(1), SetEventMode(1), GetEvent
 until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableShots > 0, image quality
 RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
-DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
+DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off; then lock it
+(FocusMode 0xD108 = MF where the body offers it). Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
 RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
-(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. With capture to the card:
+(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete; a release refused with StoreFull is a
+:class:`CardFullError`. Images announced before this session (a killed client's) are kept in :attr:`EosCamera.stale`
+for the caller to rescue. With capture to the card:
 ObjectAddedEx, GetObjectInfo, GetPartialObject chunks, and DeleteObject only after the file is verified. Never CloseSession (a 5D
 Mark IV answers OperationNotSupported to everything after it).
 """
