@@ -67,7 +67,9 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
                 state = "complete (would refuse)" if m.get("complete") else f"incomplete: {len(m.get('files', []))} files done, would resume"
                 click.echo(f"existing session: {state}")
                 if not m.get("complete"):
-                    for line in _resume_plan(m):
+                    from .resume import describe_resume
+
+                    for line in describe_resume(m):
                         click.echo(f"  resume: {line}")
         if sim:
             click.echo("simulated rig: bodies and raw sizes come from the studio at run time")
@@ -106,28 +108,6 @@ def ctrl_c_from_finalizers() -> Iterator[None]:
         yield
     finally:
         sys.unraisablehook = previous
-
-
-def _resume_plan(manifest: dict) -> list[str]:
-    """What a resume of this manifest's session checks and re-shoots before it continues (``--dry-run``)."""
-    files = manifest.get("files", [])
-    by_cam: dict[str, set[str]] = {}
-    for f in files:
-        by_cam.setdefault(f["camera"], set()).add(f["path"].split("/", 1)[-1].rsplit(".", 1)[0])
-    lines = []
-    for cam, stems in sorted(by_cam.items()):
-        if any(s.startswith("dp_") for s in stems):
-            lines.append(f"{cam}: one frame at its widest kept DP aperture into focus/ to check the focus; if it moved, "
-                         "its DP and sharp frames go to quarantine/ and are re-shot after a new AF")
-    views = {s for stems in by_cam.values() for s in stems if s.startswith("charuco_")}
-    for view in sorted(views):
-        have = [c for c, stems in sorted(by_cam.items()) if view in stems]
-        if len(have) < len(manifest.get("rig", {}).get("bodies", [])):
-            lines.append(f"{view}: only {', '.join(have)} kept: both sides re-shot (the kept side goes to quarantine/)")
-    for cam, flight in sorted(manifest.get("in_flight", {}).items()):
-        lines.append(f"{cam}: the image of {flight.get('shot')} cut off by the interruption is moved to quarantine/ "
-                     "and released from the body")
-    return lines
 
 
 def _kept(session_dir: Path) -> str:

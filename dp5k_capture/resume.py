@@ -159,6 +159,28 @@ def settle_focus(cam: EosCamera, body: BodyConfig, rig: RigConfig, writer: RawSe
     return "moved"
 
 
+def describe_resume(manifest: dict[str, Any]) -> list[str]:
+    """What a resume of this manifest's session checks and re-shoots before it continues (``--dry-run``)."""
+    files = manifest.get("files", [])
+    by_cam: dict[str, set[str]] = {}
+    for f in files:
+        by_cam.setdefault(f["camera"], set()).add(f["path"].split("/", 1)[-1].rsplit(".", 1)[0])
+    lines = []
+    for cam, stems in sorted(by_cam.items()):
+        if any(s.startswith("dp_") for s in stems):
+            lines.append(f"{cam}: one frame at its widest kept DP aperture into focus/ to check the focus; if it moved, "
+                         "its DP and sharp frames go to quarantine/ and are re-shot after a new AF")
+    views = {s for stems in by_cam.values() for s in stems if s.startswith("charuco_")}
+    for view in sorted(views):
+        have = [c for c, stems in sorted(by_cam.items()) if view in stems]
+        if len(have) < len(manifest.get("rig", {}).get("bodies", [])):
+            lines.append(f"{view}: only {', '.join(have)} kept: both sides re-shot (the kept side goes to quarantine/)")
+    for cam, flight in sorted(manifest.get("in_flight", {}).items()):
+        lines.append(f"{cam}: the image of {flight.get('shot')} cut off by the interruption is moved to quarantine/ "
+                     "and released from the body")
+    return lines
+
+
 def prepare_run(rig: RigConfig, bodies: dict[str, EosCamera], writer: RawSessionWriter, clear_board: Callable[[], None],
                 *, check_dp: bool = True) -> None:
     """Everything a run does before its first planned shot (the projector is on and blanked): whole ChArUco
@@ -173,4 +195,4 @@ def prepare_run(rig: RigConfig, bodies: dict[str, EosCamera], writer: RawSession
         settle_focus(bodies[b.id], b, rig, writer, check_dp=check_dp)
 
 
-__all__ = ["prepare_run", "settle_focus", "rescue_leftovers", "complete_charuco_pairs", "FOCUS_DEPENDENT_KINDS"]
+__all__ = ["prepare_run", "describe_resume", "settle_focus", "rescue_leftovers", "complete_charuco_pairs", "FOCUS_DEPENDENT_KINDS"]
