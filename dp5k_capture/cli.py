@@ -157,8 +157,9 @@ def devices_command(rig_path: Path | None, sim: bool, sim_faults: str, udev_rule
         bodies = find_bodies()
         ports = [(p.split("  ", 1)[0], p.split("  ", 1)[-1]) for p in serial_ports()]
         query = {rig.projector.port} if rig_path else set()
-        if rig_path and rig.projector.port not in {p for p, _ in ports}:
-            ports.append((rig.projector.port, "the projector port named in rig.toml"))
+        if rig_path:  # the rig's projector: its model from rig.toml (ESC/VP21 has no model query)
+            ports = [(p, d) for p, d in ports if p != rig.projector.port]
+            ports.append((rig.projector.port, f"{rig.projector.model} (rig.toml's projector port)"))
     ids = {b.serial: b.id for b in rig.bodies if b.serial}
     try:
         click.echo(f"Canon bodies ({len(bodies)}):")

@@ -4,6 +4,7 @@ repeated AFs land elsewhere, the view can move. Frames come from the simulated b
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -110,3 +111,30 @@ def test_every_af_after_the_first_lands_elsewhere_seeded() -> None:
     assert landings(0, 0) == first  # seeded
     later = landings(0, 1)  # a body of a later in-process run: even its first AF lands elsewhere
     assert later[0] != subject and later != first and landings(1, 0)[1:] != first[1:]
+
+
+def test_a_plain_focus_window_grows_until_the_change_is_measurable() -> None:
+    """A plain surface (a shading ramp, no texture) at the AF point: the check measures in a grown window, where a
+    0.3 % refocus still shows and noise-free frames at one focus do not."""
+    optics = FlatOptics((96, 64))
+    point = (48, 32)
+    yy, xx = np.mgrid[0:64, 0:96]
+    plain = (np.abs(xx - 48) < 20) & (np.abs(yy - 32) < 20)
+    optics.albedo = np.where(plain, 0.4 + 0.2 * xx / 96, optics.albedo)  # a ramp: light falling off, no texture
+
+    rng = np.random.default_rng(5)
+
+    def shot(focus: float) -> DualPixelFrames:  # with sensor noise (the flat world has none): 1 % of the signal
+        f = _frames(optics.expose(ExposureSettings("S", 1.8, 1 / 500, 100, point, focus, True, 1)))
+        sd = 0.01 * float(f.main.mean() - f.black_level)
+        aux = f.aux + rng.normal(0, sd / np.sqrt(2), f.aux.shape)
+        main = aux + (f.main.astype(float) - f.aux) + rng.normal(0, sd / np.sqrt(2), f.aux.shape)
+        return dataclasses.replace(f, main=main.astype(np.float32), aux=aux.astype(np.float32))
+
+    subject = optics.autofocus_m("S", point)
+    kept = shot(subject)
+    same = compare_focus(kept, shot(subject), point)
+    assert not same.moved and same.window_px[2] > 32 and "the focus window holds too little texture" in same.reason
+    assert same.dp_disparity_change_sigma_px <= FocusThresholds().dp_disparity_px / 3
+    moved = compare_focus(kept, shot(subject * (1 + AF_SCATTER_REL[0])), point)
+    assert moved.moved and moved.window_px == same.window_px
