@@ -512,7 +512,10 @@ def write_dataset(
     W, H = size
     pitch = sensor_width_mm / W
     rng = np.random.default_rng(seed)
-    pad = canvas_pad(Lens(focal_length_mm, min(f_numbers), 1000.0, pitch), eff)
+    # the canvas (hence the scenes a seed draws) must not depend on what is planted: sized for every effect at
+    # strength 2 (or the strongest asked)
+    top = max([2.0] + [v / EFFECT_DEFAULTS[k] for k, v in eff.a.items() if EFFECT_DEFAULTS[k]])
+    pad = canvas_pad(Lens(focal_length_mm, min(f_numbers), 1000.0, pitch), Effects.of(list(EFFECT_DEFAULTS), top))
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
