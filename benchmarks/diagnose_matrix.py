@@ -63,7 +63,7 @@ NEAR_SIGNAL = 0.05
 (an rms change of 0.22 sigma per pixel)."""
 NEAR_NOISE_RATIO = 1.75
 """The views' noise variance over the nominal at ``noise``'s ``near`` strength (diagnose's threshold is 1.5)."""
-CALIBRATION_PAIRS = 8
+CALIBRATION_PAIRS = 24
 SHORT = {"lr_gain_imbalance": "lr", "field_varying_psf": "fvp", "chromatic_defocus": "chrom", "disparity_scale": "disp",
          "focus_offset": "focus", "psf_profile": "prof", "front_back_asymmetry": "fba", "misregistration": "misreg",
          "noise": "noise"}

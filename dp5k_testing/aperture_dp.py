@@ -68,7 +68,7 @@ EFFECT_DEFAULTS: dict[str, float] = {
     # spherical aberration: the zone at pupil radius rho lands as if its CoC were c - a (1.8 / N)^3 (rho^2 - 3/5) mm
     # on the sensor (over-corrected: rim-heavy discs behind focus, larger centre-heavy ones in front; the 3/5 keeps
     # zero DP disparity at the focus distance, where the camera's DP autofocus put it)
-    "front_back_asymmetry": 0.2,
+    "front_back_asymmetry": 0.3,
     # both views against sharp: shifted by (0.6 a, -0.35 a) px and rotated by 0.08 a degrees about the frame centre
     "misregistration": 1.0,
     # the views' noise: shot variance x (1 + a), read sigma x (1 + a / 2)
