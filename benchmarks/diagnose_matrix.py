@@ -34,13 +34,13 @@ import math
 import multiprocessing
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
 import time
 import traceback
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -48,6 +48,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
+from dp5k_testing import aperture_dp, foreign_dp
 
 TRIPLES: tuple[tuple[str, ...], ...] = (
     ("lr_gain_imbalance", "field_varying_psf", "disparity_scale"),  # issue 30: the gain ramp was absorbed
@@ -89,16 +90,12 @@ class Renderer:
 
 
 def _write_foreign(out: Path, strengths: dict[str, float], seed: int, size: tuple[int, int], pairs: int, noise: bool) -> None:
-    from dp5k_testing.foreign_dp import write_dataset
-
     # its splits are by scene: 2 test, 2 val, the rest train, so at least 5 scenes
-    write_dataset(out, strengths or "none", 1.0, scenes=max(5, pairs // 2), size=size, seed=seed, noise=noise)
+    foreign_dp.write_dataset(out, strengths or "none", 1.0, scenes=max(5, pairs // 2), size=size, seed=seed, noise=noise)
 
 
 def _write_aperture(out: Path, strengths: dict[str, float], seed: int, size: tuple[int, int], pairs: int, noise: bool) -> None:
-    from dp5k_testing.aperture_dp import write_dataset
-
-    write_dataset(out, strengths or "none", 1.0, scenes=max(3, pairs // 2), size=size, seed=seed, noise=noise)
+    aperture_dp.write_dataset(out, strengths or "none", 1.0, scenes=max(3, pairs // 2), size=size, seed=seed, noise=noise)
 
 
 def _empirical_ratio(add_noise: Callable[[np.ndarray], np.ndarray], shot: float, read: float) -> float:
@@ -107,23 +104,20 @@ def _empirical_ratio(add_noise: Callable[[np.ndarray], np.ndarray], shot: float,
 
 
 def _foreign_noise_ratio(strength: float) -> float:
-    from dp5k_testing import foreign_dp as fd
-
-    planted = fd.Planted.of({"noise": strength} if strength else "none")
-    return _empirical_ratio(lambda img: fd.add_noise(np.random.default_rng(0), img, planted), fd.NOMINAL_SHOT_VAR, fd.NOMINAL_READ_SIGMA)
+    planted = foreign_dp.Planted.of({"noise": strength} if strength else "none")
+    return _empirical_ratio(lambda img: foreign_dp.add_noise(np.random.default_rng(0), img, planted),
+                            foreign_dp.NOMINAL_SHOT_VAR, foreign_dp.NOMINAL_READ_SIGMA)
 
 
 def _aperture_noise_ratio(strength: float) -> float:
-    from dp5k_testing import aperture_dp as ap
-
-    shot, read = ap.views_noise(ap.Effects.of({"noise": strength} if strength else "none"), ap.NOMINAL_SHOT_VAR, ap.NOMINAL_READ_SIGMA)
-    return _empirical_ratio(lambda img: ap.add_sensor_noise(np.random.default_rng(0), img, shot, read),
-                            ap.NOMINAL_SHOT_VAR, ap.NOMINAL_READ_SIGMA)
+    nominal = (aperture_dp.NOMINAL_SHOT_VAR, aperture_dp.NOMINAL_READ_SIGMA)
+    shot, read = aperture_dp.views_noise(aperture_dp.Effects.of({"noise": strength} if strength else "none"), *nominal)
+    return _empirical_ratio(lambda img: aperture_dp.add_sensor_noise(np.random.default_rng(0), img, shot, read), *nominal)
 
 
 RENDERERS: dict[str, Renderer] = {
-    "foreign": Renderer("foreign", (2e-5, 1e-3), _write_foreign, _foreign_noise_ratio),
-    "aperture": Renderer("aperture", (2e-4, 2e-3), _write_aperture, _aperture_noise_ratio),
+    "foreign": Renderer("foreign", (foreign_dp.NOMINAL_SHOT_VAR, foreign_dp.NOMINAL_READ_SIGMA), _write_foreign, _foreign_noise_ratio),
+    "aperture": Renderer("aperture", (aperture_dp.NOMINAL_SHOT_VAR, aperture_dp.NOMINAL_READ_SIGMA), _write_aperture, _aperture_noise_ratio),
 }
 
 
@@ -278,14 +272,21 @@ def stamp_line(s: dict[str, Any]) -> str:
     return f"_{s['date']} · load {'/'.join(f'{v:.1f}' for v in s['load'])} (1/5/15 min) · commit {s['commit']} · {s['nproc']} CPUs_"
 
 
-def init_worker() -> None:
-    """One thread per case: ``--jobs`` processes share the cores."""
+def init_worker(ignore_sigint: bool = True) -> None:
+    """One thread per case: ``--jobs`` processes share the cores. Workers leave Ctrl-C to the main process,
+    which stops them."""
     import cv2
     import torch
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     os.environ.setdefault("DP5K_PROGRESS", "0")
+    if ignore_sigint:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def run_job(job: tuple[Case, dict[str, float], Path, tuple[int, int], int, bool]) -> dict[str, Any]:
+    return run_case(*job)
 
 
 def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int, int], pairs: int, keep: bool) -> dict[str, Any]:
@@ -296,8 +297,9 @@ def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int
 
     renderer = RENDERERS[case.renderer]
     ds = out / "sets" / case.slug
-    shutil.rmtree(ds, ignore_errors=True)  # a set an interrupted run left behind
     ds.parent.mkdir(parents=True, exist_ok=True)
+    for stale in [ds, *ds.parent.glob(f".{ds.name}.tmp-*")]:  # what an interrupted run left behind
+        shutil.rmtree(stale, ignore_errors=True)
     row: dict[str, Any] = {"key": case.key, "renderer": case.renderer, "case": case.name, "planted": list(case.effects),
                            "level": case.level, "strengths": strengths, "seed": case.seed, "size": list(size), "pairs": pairs,
                            "causes": [], "suspects": [], "lookalikes": [], "error": None, **stamp()}
@@ -596,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(cases)} cases, {len(cases) - len(todo)} already in {results}, {len(todo)} to run with {a.jobs} job(s); "
           f"{size[0]}x{size[1]}, {a.pairs} pairs per set", flush=True)
     t0 = time.perf_counter()
-    jobs = [(c, case_strengths(c, table, size)) for c in todo]
+    jobs = [(c, case_strengths(c, table, size), a.out, size, a.pairs, a.keep) for c in todo]
 
     def done_line(i: int, row: dict[str, Any]) -> None:
         append_row(results, row)
@@ -607,18 +609,20 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if a.jobs <= 1:
-            init_worker()
-            for i, (c, st) in enumerate(jobs, 1):
-                done_line(i, run_case(c, st, a.out, size, a.pairs, a.keep))
+            init_worker(ignore_sigint=False)
+            for i, job in enumerate(jobs, 1):
+                done_line(i, run_job(job))
         else:
-            with ProcessPoolExecutor(max_workers=a.jobs, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker) as pool:
-                futures = [pool.submit(run_case, c, st, a.out, size, a.pairs, a.keep) for c, st in jobs]
-                try:
-                    for i, fut in enumerate(as_completed(futures), 1):
-                        done_line(i, fut.result())
-                except KeyboardInterrupt:
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    raise
+            pool = multiprocessing.get_context("spawn").Pool(a.jobs, initializer=init_worker)
+            try:
+                for i, row in enumerate(pool.imap_unordered(run_job, jobs), 1):
+                    done_line(i, row)
+                pool.close()
+            except BaseException:
+                pool.terminate()  # the running cases are lost; their rows were never written, so a re-run redoes them
+                raise
+            finally:
+                pool.join()
     except KeyboardInterrupt:
         print(f"interrupted; finished cases are in {results} and a re-run continues from there", file=sys.stderr)
         return 130
