@@ -250,3 +250,20 @@ def test_sharp_is_the_f22_frame_and_in_focus_the_views_add_up_to_it() -> None:
     c8 = float(Lens(35.0, 8.0, 1000.0, PITCH).coc_px(np.float64(2500.0)))
     assert moments(s8)[3] - moments(s0)[3] == pytest.approx(c8**2 / 16 + INTERPOLATION_VARIANCE_PX2, rel=0.05)
     assert moments(s8)[4] == pytest.approx(moments(s0)[4], rel=1e-5)
+
+
+def test_the_renderer_shares_no_code_with_dp5k() -> None:
+    """Its modules import only the standard library, numpy, OpenCV, tifffile and each other (not dp5k, not
+    foreign_dp): an independent implementation of the physics."""
+    import ast
+
+    import dp5k_testing.aperture_dp as ap
+
+    allowed = {"json", "math", "os", "shutil", "string", "dataclasses", "pathlib", "typing", "__future__", "cv2", "numpy", "tifffile"}
+    for path in (Path(ap.__file__), Path(ap.__file__).with_name("aperture_scene.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                assert {a.name.split(".")[0] for a in node.names} <= allowed, (path.name, ast.dump(node))
+            elif isinstance(node, ast.ImportFrom):
+                ok = node.module.split(".")[0] in allowed if node.level == 0 else node.module == "aperture_scene"
+                assert ok, (path.name, node.module)
