@@ -24,7 +24,7 @@ from dp5k_common.progress import set_progress_enabled
 # light commands start without loading torch, Open3D or pygame. tests/test_cli.py keeps the help in sync.
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "capture": ("dp5k_capture.cli", "capture_command", "Capture one scene on the rig (or --sim): DP raws, ChArUco, Gray code."),
-    "devices": ("dp5k_capture.cli", "devices_command", "List Canon bodies (USB 04a9, serials) and serial ports."),
+    "devices": ("dp5k_capture.cli", "devices_command", "Canon bodies and projector ports: serial, access, battery, card, holder."),
     "verify": ("dp5k_capture.cli", "verify_command", "Verify raw sessions: sizes, SHA-256, counts, Dual Pixel frames."),
     "process": ("dp5k_process.cli", "process_command", "Process raw sessions into the dataset format v1."),
     "validate-depth": ("dp5k_process.cli", "validate_depth_command", "Depth accuracy against a ChArUco wall (Eq. 4)."),

@@ -4,9 +4,12 @@ Sequence (after libgphoto2's camera_prepare_canon_eos_capture / trigger / downlo
 docs/capture.md): OpenSession(1) with tid 0, GetDeviceInfo, SetRemoteMode(1), SetEventMode(1), GetEvent
 until empty, capture destination PC (0xD11C=4) + PCHDDCapacity until AvailableShots > 0, image quality
 RAW via SetDevicePropValueEx (0x9110). Focus once per scene in live view: EVFOutputDevice=PC, ZoomPosition(x, y),
-DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off. Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
+DoAf, wait for the AF result (OLC focus info, after SetRequestOLCInfoGroup), AfCancel, live view off; then lock it
+(FocusMode 0xD108 = MF where the body offers it). Each exposure: set Av/Tv/ISO and wait until GetEvent echoes them,
 RemoteReleaseOn(3, 1) (full press, no AF) + RemoteReleaseOff(3), GetEvent until RequestObjectTransfer
-(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete. With capture to the card:
+(KeepDeviceOn every 10 s), GetPartialObject in 1 MiB chunks, TransferComplete; a release refused with StoreFull is a
+:class:`CardFullError`. Images announced before this session (a killed client's) are kept in :attr:`EosCamera.stale`
+for the caller to rescue. With capture to the card:
 ObjectAddedEx, GetObjectInfo, GetPartialObject chunks, and DeleteObject only after the file is verified. Never CloseSession (a 5D
 Mark IV answers OperationNotSupported to everything after it).
 """
@@ -26,17 +29,20 @@ from .ptp.codes import (
     CANON_VID,
     CAPTURE_DEST_CARD,
     CAPTURE_DEST_PC,
+    FOCUS_MODE_MF,
     OFC_ASSOCIATION,
     EVF_OUTPUT_PC,
     EosEvent,
     EosProp,
     Op,
+    Resp,
     av_code,
     iso_code,
     tv_code,
 )
 from .ptp.datasets import DeviceInfo
 from .ptp.eos_events import EosRecord, parse_events
+from .ptp.errors import CardFullError, ResponseError
 from .ptp.olc import FOCUS_FAILED, FOCUS_IN_FOCUS, OLC_FIELD_SIZES, OLC_REQUEST_ALL
 from .ptp.session import PTPSession
 from .rig import TimeoutConfig
@@ -44,6 +50,8 @@ from .rig import TimeoutConfig
 log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1 << 20
+FOCUS_MODE_AF = 0  # one-shot AF (FocusMode 0xD108), what DoAf needs
+REMOTE_RELEASE_CARD_FULL = 7  # RemoteRelease (0x910F) result: card full (libgphoto2)
 RAW_IMAGE_FORMAT = (6, 0, 4)  # kind RAW, size L, compression lossless
 DONT_CLOSE_SESSION = {(CANON_VID, 0x3281)}  # EOS 5D Mark IV (libgphoto2 PTP_DONT_CLOSE_SESSION)
 
@@ -119,6 +127,9 @@ class EosCamera:
         self._last_keepalive = time.monotonic()
         self.focus_point_px: tuple[int, int] | None = None
         self.pending: list[EosRecord] = []
+        self.stale: list[EosRecord] = []  # images announced before this session (a killed client's): rescued by the caller
+        self.cam_id = session.name  # the rig's id and the body serial, for messages (set by devices.open_body)
+        self.serial = ""
 
     # ------------------------------------------------------------------ setup
     def open(self) -> DeviceInfo:
@@ -142,9 +153,9 @@ class EosCamera:
             self.state.olc = True
         self.poll_events()
         if self.pending:  # announced to a client before us (killed mid-download): not a shot of ours
-            log.warning("%s: ignoring %d image(s) announced before this session: %s", self.name, len(self.pending),
-                        ", ".join(r.filename or "?" for r in self.pending))
-            self.pending.clear()
+            log.info("%s: %d image(s) announced before this session: %s", self.name, len(self.pending),
+                     ", ".join(r.filename or "?" for r in self.pending))
+            self.stale, self.pending = list(self.pending), []
         if self.destination == "card":
             self.set_capture_to_card()
         else:
@@ -274,6 +285,8 @@ class EosCamera:
             DeviceError: the body reports a failed AF, or no result within ``focus_s`` (naming the body).
         """
         x, y = int(round(point_px[0])), int(round(point_px[1]))
+        if self.state.props.get(EosProp.FOCUS_MODE) == FOCUS_MODE_MF and FOCUS_MODE_AF in self.state.avail.get(EosProp.FOCUS_MODE, []):
+            self.set_prop(EosProp.FOCUS_MODE, FOCUS_MODE_AF, "focus mode AF (for this scene's autofocus)")
         self.set_prop(EosProp.EVF_OUTPUT_DEVICE, EVF_OUTPUT_PC, "live view on")
         self.session.transaction(Op.EOS_ZOOM_POSITION, (x, y))
         self.state.focus = None
@@ -289,26 +302,64 @@ class EosCamera:
                 while time.monotonic() < deadline:
                     self.poll_events()
                     time.sleep(self.timing.poll_s)
-        finally:
-            self.session.transaction(Op.EOS_AF_CANCEL)
-            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        except BaseException:
+            self._end_af(quiet=True)  # AfCancel and live view off, without hiding what stopped the AF (Ctrl-C too)
+            raise
+        self._end_af()
         if self.state.focus == FOCUS_FAILED:
             raise DeviceError(f"autofocus at ({x}, {y}) px failed: the body found no focus there (low contrast, closer "
                               "than the lens focuses, or lens switch on MF); capture stops before any shot of this run", where=self.name)
         self.focus_point_px = (x, y)
+
+    def _end_af(self, quiet: bool = False) -> None:
+        """AfCancel, then live view off; ``quiet``: a failure is logged, not raised (an error is already in flight)."""
+        try:
+            self.session.transaction(Op.EOS_AF_CANCEL)
+            self.set_prop(EosProp.EVF_OUTPUT_DEVICE, 0, "live view off")
+        except DeviceError as exc:
+            if not quiet:
+                raise
+            log.warning("%s: ending the AF after an interruption: %s", self.name, exc)
+
+    def lock_focus(self) -> dict[str, object]:
+        """Keep the focus of the last AF: FocusMode (0xD108) = MF where the body offers it, confirmed by its events.
+
+        Whatever the body allows, dp5k never sends DoAf again for the scene and releases without AF
+        (RemoteReleaseOn(3, 1)). Returns what the body reports: FocusMode before and after, how focus is held,
+        the lens, the AF state.
+        """
+        before = self.state.props.get(EosProp.FOCUS_MODE)
+        offered = self.state.avail.get(EosProp.FOCUS_MODE, [])
+        if before == FOCUS_MODE_MF:
+            how = "FocusMode 0xD108 already reads 3 (MF)"
+        elif FOCUS_MODE_MF in offered:
+            self.set_prop(EosProp.FOCUS_MODE, FOCUS_MODE_MF, "focus mode MF (focus lock)")
+            how = "FocusMode 0xD108 set to 3 (MF) and confirmed by the body"
+        else:
+            how = "releases without AF only: the body offers no FocusMode MF to the PC (set the lens switch to MF)"
+            log.warning("%s: the body does not let the PC set manual focus (FocusMode 0xD108 offers %s): focus is held by "
+                        "releasing without AF; set the lens switch to MF now to be safe", self.name, offered or "nothing")
+        return {"locked_by": how, "focus_mode_before": before, "focus_mode": self.state.props.get(EosProp.FOCUS_MODE),
+                "af_state": {FOCUS_IN_FOCUS: "in focus", FOCUS_FAILED: "failed", None: "not reported"}.get(self.state.focus, str(self.state.focus)),
+                "lens": self.state.props.get(EosProp.LENS_NAME)}
 
     # ------------------------------------------------------------------ capture
     def release(self) -> None:
         """Full press without AF, then release (RemoteReleaseOn(3, 1), RemoteReleaseOff(3))."""
         self.poll_events()
         if self.state.busy:
-            self._wait("release", lambda: not self.state.busy, self.timing.object_s)
-        self.session.transaction(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
+            self._wait("release", lambda: not self.state.busy, self.timing.object_s, "capture_s")
+        try:
+            self.session.transaction(Op.EOS_REMOTE_RELEASE_ON, (3, 1))
+        except ResponseError as exc:
+            if exc.code == Resp.STORE_FULL:
+                raise CardFullError("the body refused the release: its card is full (StoreFull 0x200C)", where=self.name) from exc
+            raise
         self.session.transaction(Op.EOS_REMOTE_RELEASE_OFF, (3,))
 
     def wait_object(self) -> EosRecord:
         """Poll GetEvent (with keep-alive) until the body announces the new object."""
-        self._wait("wait for the new image", lambda: bool(self.pending), self.timing.object_s)
+        self._wait("wait for the new image", lambda: bool(self.pending), self.timing.object_s, "capture_s")
         return self.pending.pop(0)
 
     def download(self, rec: EosRecord) -> Download:
@@ -342,11 +393,17 @@ class EosCamera:
         if dl.on_card and self.delete_from_card:
             self.session.delete_object(dl.handle)
 
-    def capture(self, f_number: float, shutter_s: float, iso: int) -> Download:
-        """Set the exposure, release without refocusing and download the new raw file."""
+    def capture(self, f_number: float, shutter_s: float, iso: int,
+                announced: Callable[[EosRecord], None] | None = None) -> Download:
+        """Set the exposure, release without refocusing and download the new raw file. ``announced(record)`` is
+        called between the body's announcement and the download (the caller records the handle, so a reopen
+        after a kill finds the image and frees the body of it)."""
         self.set_exposure(f_number, shutter_s, iso)
         self.release()
-        return self.download(self.wait_object())
+        rec = self.wait_object()
+        if announced is not None:
+            announced(rec)
+        return self.download(rec)
 
 
 __all__ = ["EosCamera", "CaptureTiming", "Download", "EosState"]

@@ -1,36 +1,34 @@
 """The capture sequence of one scene on the two-body + projector rig.
 
-Order (per scene, focus fixed): autofocus both bodies once at their focus points; 3 ChArUco views for
-stereo recalibration (the operator, or the simulated studio, places the board); Dual Pixel RAW at each DP
-aperture and the sharp f/22 frame with the projector blanked; then the 46 structured-light projections
+Order (per scene, focus fixed): autofocus both bodies once at their focus points and lock the focus; 3 ChArUco
+views for stereo recalibration (the operator, or the simulated studio, places the board); Dual Pixel RAW at each
+DP aperture and the sharp f/22 frame with the projector blanked; then the 46 structured-light projections
 (projector unblanked), each shot by both bodies. Every file is checked to be a two-frame Dual Pixel RAW
 before it gets its final name; a scene whose raws are not DP stops at the first file. Completed files are
-skipped when the scene is resumed.
+skipped when the scene is resumed, after the checks of :mod:`~dp5k_capture.resume` (focus unchanged, whole
+ChArUco pairs, nothing left on the bodies).
 """
 
 from __future__ import annotations
 
 import logging
-import threading
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-from dp5k_common.errors import BadInputError, DeviceError, DP5KError
 from dp5k_common.progress import progress
 
 from .canon import EosCamera
 from .display import PatternWindow
 from .escvp21 import EpsonProjector
 from .patterns import projection, projection_label
-from .rawsession import RawSessionWriter, Shot, plan_scene
+from .rawsession import RawSessionWriter, plan_scene
+from .resume import prepare_run
 from .rig import RigConfig
+from .steps import dual_pixel_check, keep_bodies_awake, shoot, step
 
 log = logging.getLogger(__name__)
-
-KEEPALIVE_DEFAULT_S = 10.0  # KeepDeviceOn interval (s) when there are no bodies to take it from
 
 
 class BoardPositioner(Protocol):
@@ -73,22 +71,6 @@ class RigDevices:
                 log.warning("closing: %s", exc)
 
 
-def dual_pixel_check(where: str) -> Callable[[Path], None]:
-    """A file check that refuses raws that are not two-frame Dual Pixel RAW (names ``where``)."""
-
-    def check(path: Path) -> None:
-        from dp5k_common.rawfile import read_dual_pixel
-
-        try:
-            read_dual_pixel(path)
-        except BadInputError as exc:
-            raise DeviceError(
-                f"the body did not write a Dual Pixel RAW ({exc.message}); enable Shooting menu > Dual Pixel RAW "
-                "with quality RAW on this body; the scene stops here", where=where) from exc
-
-    return check
-
-
 def describe_plan(rig: RigConfig, scene: str, out: Path, ext: str) -> list[str]:
     """The plan as text lines (``--dry-run``)."""
     shots = plan_scene(rig)
@@ -125,12 +107,15 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
         writer.finish(rig)
         return 0
     proj = devices.projector
-    _step("projector start-up", proj.name, proj.prepare, rig.projector.source)
-    _step("blank projector", proj.name, proj.blank, True)
-    for b in rig.bodies:
-        cam = devices.bodies[b.id]
-        _step("autofocus", cam.name, cam.focus_at, b.focus_point_px)
-        writer.set_focus_point(b.id, b.focus_point_px)
+    step("projector start-up", proj.prepare, rig.projector.source)
+    step("blank projector", proj.blank, True)
+
+    def clear_board() -> None:
+        with keep_bodies_awake(devices.bodies.values()):
+            devices.board.clear()
+
+    prepare_run(rig, devices.bodies, writer, clear_board, check_dp=check_dp)
+    todo = [(s, b.id) for s in shots for b in rig.bodies if not writer.done(b.id, s)]  # the checks may add re-shoots
     written = 0
     board_out = True
     blanked = True
@@ -141,27 +126,28 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
             if not pending:
                 continue
             if shot.kind == "charuco":
+                writer.set_board(int(shot.index or 0))  # recorded first: a resume clears a board left in the scene
                 with keep_bodies_awake(devices.bodies.values()):
                     devices.board.place(int(shot.index or 0))
                 board_out = False
             elif not board_out:
-                with keep_bodies_awake(devices.bodies.values()):
-                    devices.board.clear()
+                clear_board()
+                writer.set_board(None)
                 board_out = True
             if shot.kind == "sl":
                 if blanked:
-                    _step("unblank projector", proj.name, proj.blank, False)
+                    step("unblank projector", proj.blank, False)
                     blanked = False
                 img = projection(int(shot.index or 0), rig.projector.width, rig.projector.height)
                 devices.window.show(img, shot.index)
             for cam_id in pending:
-                _shoot(devices.bodies[cam_id], cam_id, shot, writer, check_dp)
+                shoot(devices.bodies[cam_id], cam_id, shot, writer, check_dp)
                 written += 1
                 bar.update(1)
         if not board_out:
-            with keep_bodies_awake(devices.bodies.values()):
-                devices.board.clear()
-        _step("blank projector", proj.name, proj.blank, True)
+            clear_board()
+            writer.set_board(None)
+        step("blank projector", proj.blank, True)
     finally:
         bar.close()
     if before_complete is not None:
@@ -170,47 +156,5 @@ def run_scene(rig: RigConfig, devices: RigDevices, writer: RawSessionWriter, *, 
     return written
 
 
-@contextmanager
-def keep_bodies_awake(bodies: Iterable[EosCamera]) -> Iterator[None]:
-    """While the operator is prompted (the main thread waits for Enter), send KeepDeviceOn to each body every
-    ``keepalive_s`` from a helper thread, so no body powers down. The bodies are idle meanwhile: only this
-    thread talks to them. A failure is logged; the next shot reports the body's state."""
-    cams = list(bodies)
-    stop = threading.Event()
-
-    def run() -> None:
-        interval_s = min((c.timing.keepalive_s for c in cams), default=KEEPALIVE_DEFAULT_S)
-        while not stop.wait(interval_s):
-            for cam in cams:
-                try:
-                    cam.keep_alive()
-                except DP5KError as exc:
-                    log.warning("%s: keep-alive while waiting for the operator: %s", cam.name, exc)
-
-    thread = threading.Thread(target=run, name="keep-bodies-awake", daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join()
-
-
-def _step(step: str, where: str, fn: Callable[..., object], *args: object) -> None:
-    try:
-        fn(*args)
-    except DP5KError as exc:
-        exc.message = f"{step}: {exc.message}"
-        raise
-
-
-def _shoot(cam: EosCamera, cam_id: str, shot: Shot, writer: RawSessionWriter, check_dp: bool) -> None:
-    try:
-        dl = cam.capture(shot.f_number, shot.shutter_s, shot.iso)
-        meta = {"camera_filename": dl.filename, "focus_point_px": list(cam.focus_point_px or ())}
-        writer.add(cam_id, shot, dl.data, meta, check=dual_pixel_check(cam.name) if check_dp else None)
-        cam.release_card_copy(dl)  # capture to card: delete the card file only now that it is verified and stored
-    except DP5KError as exc:
-        if not exc.message.startswith(shot.stem):
-            exc.message = f"{shot.stem}: {exc.message}"
-        raise
+__all__ = ["run_scene", "describe_plan", "RigDevices", "OperatorBoard", "BoardPositioner", "keep_bodies_awake",
+           "dual_pixel_check"]

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
+import threading
+import _thread
+from collections.abc import Iterator
 from pathlib import Path
 
 import click
@@ -11,10 +16,12 @@ from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 
 log = logging.getLogger(__name__)
 
+CTRL_C_AGAIN_S = 0.05  # a Ctrl-C swallowed by a finalizer is delivered again this much later
+
 
 @click.command("capture")
 @click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
-@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("raw"), show_default=True,
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("raw"), show_default=True,
               help="Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is writable); an unwritable OUT is refused before any device is touched.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
@@ -59,6 +66,11 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
             if m.get("format") == FORMAT:
                 state = "complete (would refuse)" if m.get("complete") else f"incomplete: {len(m.get('files', []))} files done, would resume"
                 click.echo(f"existing session: {state}")
+                if not m.get("complete"):
+                    from .resume import describe_resume
+
+                    for line in describe_resume(m):
+                        click.echo(f"  resume: {line}")
         if sim:
             click.echo("simulated rig: bodies and raw sizes come from the studio at run time")
         return
@@ -67,45 +79,102 @@ def capture_command(scene: str, out: Path, rig_path: Path | None, sim: bool, sim
     scale = float(sim_scale) if sim_scale.replace(".", "", 1).isdigit() else sim_scale
     spec = SimSpec(scale, seed, faults=sim_faults, server=sim_rig) if sim else None
     try:
-        result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
+        with ctrl_c_from_finalizers():
+            result = capture_scene(scene, out, rig, sim=spec, prompt=lambda msg: click.prompt(msg, default="", show_default=False))
     except (KeyboardInterrupt, click.exceptions.Abort):  # click.prompt turns a Ctrl-C at the board prompt into Abort
-        click.echo(f"dp5k: interrupted: {_kept(out / scene)}; run the same command again to resume", err=True)
+        click.echo(f"dp5k: interrupted: {_kept(out / scene)}", err=True)
         click.get_current_context().exit(130)
     click.echo(f"{result.dir}: complete ({result.written} files captured now)")
 
 
+@contextlib.contextmanager
+def ctrl_c_from_finalizers() -> Iterator[None]:
+    """A Ctrl-C that lands while the garbage collector runs a finalizer (a weakref callback, a ``__del__``) is
+    "ignored" by Python, which prints its traceback on stderr and goes on. Deliver it to the main thread again
+    instead (from a timer thread, so it arrives after the finalizer, not inside this hook), so it ends the
+    command like any Ctrl-C: one line, exit code 130."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            again = threading.Timer(CTRL_C_AGAIN_S, _thread.interrupt_main)
+            again.daemon = True
+            again.start()
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def _kept(session_dir: Path) -> str:
-    """What an interrupted capture left: the completed files recorded in the manifest."""
+    """What an interrupted capture left (the completed files the manifest records) and what to do."""
     from dp5k_common.io import read_json
 
     try:
-        n = len(read_json(session_dir / "manifest.json").get("files", []))
+        manifest = read_json(session_dir / "manifest.json")
+        n, complete = len(manifest.get("files", [])), bool(manifest.get("complete"))
     except (DP5KError, OSError, AttributeError):
-        n = 0
-    return f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
+        n, complete = 0, False
+    if complete:  # the Ctrl-C came after the session was marked complete
+        return f"{session_dir} is complete ({n} files); nothing to resume"
+    kept = f"{n} completed files kept in {session_dir}" if n else f"no file was captured in {session_dir}"
+    return f"{kept}; run the same command again to resume"
 
 
 @click.command("devices")
+@click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="rig.toml: names the bodies (cam0/cam1 by serial) and the projector's port, which is then asked over ESC/VP21.")
 @click.option("--sim", is_flag=True, help="List the simulated rig's devices instead.")
-def devices_command(sim: bool) -> None:
-    """List Canon bodies (USB vendor 04a9, serial numbers) and serial ports for the projector."""
+@click.option("--sim-faults", default="", help="Faults of the simulated bodies, as for capture (e.g. 'cam1.denied', 'cam0.held').")
+@click.option("--udev-rule", is_flag=True, help="Print dp5k's udev rules file and exit; install it with "
+              "dp5k devices --udev-rule | sudo tee /etc/udev/rules.d/60-dp5k.rules.")
+def devices_command(rig_path: Path | None, sim: bool, sim_faults: str, udev_rule: bool) -> None:
+    """List every Canon body (model, serial, device node, permission, battery, card free space, who holds it) and
+    the serial ports for the EPSON projector (permission, holder; the rig's port is asked for serial and power)."""
+    from .device_report import probe_body, probe_port
     from .devices import find_bodies, serial_ports
+    from .rig import RigConfig, load_rig
+    from .usb_access import udev_rule_path
 
+    if udev_rule:
+        click.echo(udev_rule_path().read_text(), nl=False)
+        return
+    if sim_faults and not sim:
+        raise BadInputError("fault injection needs the simulated rig (--sim)", where="--sim-faults")
+    rig = load_rig(rig_path) if rig_path else RigConfig()
     closer = None
     if sim:
         from .sim.world import make_sim_rig
 
-        s = make_sim_rig()
-        bodies, ports, closer = find_bodies(s.backend), [f"{s.rig.projector.port}  simulated EPSON EB-U42 (ESC/VP21)"], s.close
+        s = make_sim_rig(rig, faults=sim_faults)
+        rig, closer = s.rig, s.close
+        bodies, ports, query = find_bodies(s.backend), [(s.rig.projector.port, "simulated EPSON EB-U42 (ESC/VP21)")], {s.rig.projector.port}
     else:
-        bodies, ports = find_bodies(), serial_ports()
+        bodies = find_bodies()
+        ports = [(p.split("  ", 1)[0], p.split("  ", 1)[-1]) for p in serial_ports()]
+        query = {rig.projector.port} if rig_path else set()
+        if rig_path:  # the rig's projector: its model from rig.toml (ESC/VP21 has no model query)
+            ports = [(p, d) for p, d in ports if p != rig.projector.port]
+            ports.append((rig.projector.port, f"{rig.projector.model} (rig.toml's projector port)"))
+    ids = {b.serial: b.id for b in rig.bodies if b.serial}
     try:
         click.echo(f"Canon bodies ({len(bodies)}):")
-        for b in bodies:
-            click.echo(f"  {b.line()}")
-        click.echo(f"serial ports ({len(ports)}) for the projector:")
-        for p in ports:
-            click.echo(f"  {p}")
+        for found in bodies:
+            lines = probe_body(found).lines()
+            cam = ids.get(found.serial)
+            click.echo(f"  {cam + ': ' if cam else ''}{lines[0]}")
+            for line in lines[1:]:
+                click.echo(f"  {line}")
+        click.echo(f"EPSON projector: serial ports ({len(ports)}):")
+        for port, desc in ports:
+            for i, line in enumerate(probe_port(port, desc, query=port in query).lines()):
+                click.echo(f"  {line}")
+        if not query:
+            click.echo("  (the projector is asked for its serial number and power on the port that --rig names)")
     finally:
         if closer:
             closer()

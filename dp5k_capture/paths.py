@@ -7,10 +7,9 @@ output folder costs the operator nothing: no projector warm-up, no autofocus, no
 from __future__ import annotations
 
 import re
-import tempfile
-from pathlib import Path
 
 from dp5k_common.errors import BadInputError
+from dp5k_common.outdir import check_out_dir  # shared with import and sl-depth
 
 MAX_SCENE_NAME_CHARS = 100  # well under the 255-byte file-name limit of ext4/NTFS/APFS, room for temp prefixes
 SCENE_NAME_CHARS = re.compile(r"[A-Za-z0-9._-]+")
@@ -41,37 +40,6 @@ def check_scene_name(scene: str) -> str:
     else:
         return scene
     raise BadInputError(f"scene name {shown} {problem}", where="--scene")
-
-
-def check_out_dir(out: Path, *, create: bool) -> Path:
-    """Check that the session root ``out`` can hold a new scene; create it if missing and ``create``.
-
-    A missing ``out`` is accepted (and made, with its missing parents, when ``create``) if its nearest
-    existing ancestor is a writable folder. Writability is probed by creating and removing a temporary
-    file (permission bits alone miss read-only mounts and root).
-
-    Raises:
-        BadInputError: ``out`` (or its nearest existing ancestor) is not a folder or cannot be written.
-    """
-    out = Path(out)
-    probe_dir = out
-    while not probe_dir.exists():
-        if probe_dir.parent == probe_dir:
-            break
-        probe_dir = probe_dir.parent
-    if not probe_dir.is_dir():
-        raise BadInputError(f"not a folder ({probe_dir} is a file)", where=out)
-    try:
-        with tempfile.TemporaryFile(dir=probe_dir, prefix=".dp5k-write-probe."):
-            pass
-    except OSError as exc:
-        raise BadInputError(f"cannot write into {probe_dir} ({exc.strerror or exc}); choose a writable --out", where=out) from exc
-    if create and probe_dir != out:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise BadInputError(f"cannot create the folder ({exc.strerror or exc})", where=out) from exc
-    return out
 
 
 __all__ = ["check_scene_name", "check_out_dir", "MAX_SCENE_NAME_CHARS", "WINDOWS_RESERVED"]

@@ -23,7 +23,7 @@ from .display import PatternWindow
 from .escvp21 import EpsonProjector, EscVp21Timing
 from .paths import check_out_dir, check_scene_name
 from .ptp.session import SessionConfig
-from .rawsession import RawSessionWriter
+from .rawsession import RawSessionWriter, count_prior_runs
 from .rig import RigConfig
 
 log = logging.getLogger(__name__)
@@ -129,8 +129,9 @@ def _simulated(scene: str, out: Path, rig: RigConfig, sim: SimSpec | None, promp
             yield r
         return
     studio_scene = sim_studio_scene(scene)
-    srig = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(studio_scene, proj, sim.scale, sim.seed), seed=sim.seed,
-                        faults=sim.faults)
+    run = count_prior_runs(out / scene)  # new bodies and a new board placement each run: the world of a later run
+    srig = make_sim_rig(rig, optics_factory=lambda proj, win: StudioOptics(studio_scene, proj, sim.scale, sim.seed, run=run),
+                        seed=sim.seed, faults=sim.faults, run=run)
     try:
         writer = RawSessionWriter(out, scene, srig.rig, "dng", extra={
             "simulated": True, "studio": {"scene": str(studio_scene), "scale": sim.scale, "seed": sim.seed}})

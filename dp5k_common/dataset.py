@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import DatasetFormatError
-from .io import read_image_raw, read_json, to_uint16, write_json_atomic, write_png16, write_tiff_float32
+from .io import new_dir_mode, read_image_raw, read_json, to_uint16, write_json_atomic, write_png16, write_tiff_float32
 
 FORMAT_NAME = "dp5k-dataset"
 FORMAT_VERSION = 1
@@ -129,6 +129,12 @@ class PairParams:
         return float(self.extra.get("sharp_f_number", SHARP_F_NUMBER))
 
     @property
+    def source_id(self) -> str:
+        """The source capture this pair comes from (optional key ``source_id``, e.g. the photo a tile was cut
+        from; the scene when absent). Splits never share a source: every pair of one capture is in one split."""
+        return str(self.extra.get("source_id", self.scene))
+
+    @property
     def frame_geometry(self) -> tuple[tuple[int, int], tuple[int, int]]:
         """(origin (x0, y0) px, full frame size (W, H) px) of this pair inside its camera frame: the optional
         keys ``crop_origin_px`` and ``full_image_size`` of a tile (validated by :meth:`from_json`), else the
@@ -206,6 +212,8 @@ class PairParams:
         size = pair_of("image_size", int)
         if "sharp_f_number" in obj and number("sharp_f_number", positive=False) < 0:
             raise DatasetFormatError(f"'sharp_f_number' must be >= 0 (0 = all-in-focus), got {obj['sharp_f_number']}", where=where)
+        if "source_id" in obj and (not isinstance(obj["source_id"], str) or not obj["source_id"]):
+            raise DatasetFormatError(f"'source_id' must be a non-empty string, got {obj['source_id']!r}", where=where)
         _check_frame_geometry(obj, size, where)
         extra = {k: v for k, v in obj.items() if k not in cls.REQUIRED}
         return cls(
@@ -499,6 +507,7 @@ def write_pair(
             write_tiff_float32(tmp / DEPTH_TIF, np.where(depth_u16 > 0, depth, 0.0).astype(np.float32))
         write_tiff_float32(tmp / "coc.tif", coc)
         write_json_atomic(tmp / "params.json", params.to_json())
+        os.chmod(tmp, new_dir_mode())  # mkdtemp's 0700 would hide a shared dataset's pairs from other users
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)

@@ -17,6 +17,7 @@ code  class                       meaning
 6     CalibrationError            calibration failed or is worse than its bound
 7     StageError                  a pipeline stage failed (processing, training, ...)
 8     PartialFailureError         some items failed, the rest completed (see report)
+9     LowQualityResultError       the result was written but is below its quality bound (see report)
 130   (KeyboardInterrupt)         interrupted by the user; finished work is kept
 ====  ==========================  =====================================================
 """
@@ -92,3 +93,11 @@ class PartialFailureError(DP5KError):
     """Some items (scenes, pairs, frames) failed; the others completed and were kept."""
 
     exit_code = 8
+
+
+class LowQualityResultError(DP5KError):
+    """The work finished and its result was written, marked as such, but it is below a documented quality bound
+    (e.g. ``dp5k sl-depth``: depth coverage under ``--min-coverage``, or a calibration that the refinement could not
+    make fit): nothing failed outright, but the result must not be used unseen."""
+
+    exit_code = 9

@@ -31,9 +31,22 @@ def new_file_mode() -> int:
     ``tempfile.mkstemp`` creates its files 0600; :func:`atomic_path` gives them this mode before the rename,
     so every file a stage writes is readable as an ordinary file would be.
     """
+    return 0o666 & ~_umask()
+
+
+def new_dir_mode() -> int:
+    """The mode a newly created folder gets under this process's umask: ``0o777 & ~umask`` (0o755 under 022).
+
+    ``tempfile.mkdtemp`` creates its folders 0700; a folder written under a temporary name and renamed into
+    place (a dataset pair) is given this mode first, so a shared dataset stays readable by others.
+    """
+    return 0o777 & ~_umask()
+
+
+def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
 
 
 @contextlib.contextmanager
@@ -72,6 +85,22 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
     """Write ``obj`` as indented JSON, atomically."""
     write_bytes_atomic(path, (json.dumps(obj, indent=2, sort_keys=False, allow_nan=False) + "\n").encode())
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every non-finite float (NaN, inf) as None and numpy scalars as Python numbers, for
+    :func:`write_json_atomic` (which writes strict JSON: no NaN)."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
 
 
 def read_json(path: str | os.PathLike[str]) -> Any:

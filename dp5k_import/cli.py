@@ -55,9 +55,16 @@ def parse_crop(values: tuple[str, ...]) -> str | dict[str, Any] | None:
 @click.option("--include-unsharp", is_flag=True, default=None,
               help="sdirt: also the box and casual scenes (depth, no sharp frame): sharp = left + right at f/4, for "
                    "depth-from-DP evaluation only.")
+@click.option("--strict", is_flag=True, default=False,
+              help="dp5k, dpdd, generic: refuse a scene whose files disagree (a gray frame beside colour ones, 8 and "
+                   "16-bit files in one pair, a --curve under which left + right does not match the combined frame) "
+                   "instead of importing it with a warning.")
+@click.option("--resume", is_flag=True, default=False,
+              help="Continue an import at OUT that ended with failed scenes (exit 8): keep the imported scenes, retry "
+                   "the failed (and any new) ones.")
 def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int, crop: tuple[str, ...],
                    curve: str | None, focal_length_mm: float | None, f_number: float | None,
-                   include_unsharp: bool | None) -> None:
+                   include_unsharp: bool | None, strict: bool, resume: bool) -> None:
     """Import public or your own DP data from SRC into a format-v1 dataset at OUT.
 
     \b
@@ -72,8 +79,12 @@ def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int,
                They are not a training set for RGBD -> DP; dp5k evaluate leaves them out (it renders from depth).
       generic  your own data: SRC/optics.json and SRC[/<split>]/<scene>/{left,right,sharp[,depth,combined]}.<ext>.
 
-    A malformed scene is reported with its file and skipped; the others are imported and the command then exits
-    with code 8. An existing dataset at OUT is never overwritten.
+    Tiles, cameras and f-numbers of one source capture (params.json source_id) always share a split; two sources
+    give train and test (val empty), one gives train only. Scene folders with spaces or accents get safe ids
+    (params.json source_name keeps the name). A malformed scene is reported with its file and skipped; the others
+    are imported and the command then exits with code 8 (fix the scene, then --resume). An existing dataset at OUT
+    is never overwritten. OUT gets report.md, report.json and previews/<source>.png. An OUT that is a file, lies
+    under a file or cannot be written is refused before anything is read (exit 3).
     """
     from .sources import import_dataset
 
@@ -88,6 +99,8 @@ def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int,
         except ValueError as exc:
             raise BadInputError(f"--tile must be WxH or none, got {tile!r}", where="--tile") from exc
         size = (w, h)
-    splits = import_dataset(kind, src, out, tile=size, seed=seed, crop=parse_crop(crop), curve=curve,
-                            focal_length_mm=focal_length_mm, f_number=f_number, include_unsharp=include_unsharp or None)
+    splits = import_dataset(kind, src, out, tile=size, seed=seed, resume=resume, crop=parse_crop(crop), curve=curve,
+                            focal_length_mm=focal_length_mm, f_number=f_number, include_unsharp=include_unsharp or None,
+                            strict=strict)
     click.echo(json.dumps({k: len(v) for k, v in splits.items()}))
+    click.echo(f"report: {out / 'report.md'}", err=True)

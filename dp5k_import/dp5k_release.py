@@ -34,7 +34,7 @@ import numpy as np
 
 from dp5k_common.errors import BadInputError
 
-from .capture import Capture, SceneSource, read_depth_mm_u16, read_linear_rgb, same_size
+from .capture import Capture, Frames, SceneSource, read_depth_mm_u16, read_linear_rgb, same_size
 from .exposure import measure_exposure
 
 RELEASE_CROPS: dict[str, tuple[int, int, int, int]] = {"cam0": (38, 1062, 88, 1112), "cam1": (38, 1062, 488, 1512)}
@@ -110,7 +110,7 @@ def _camera_captures(scene_dir: Path, split: str, cam: str, k: int, meta: dict[s
     af = _meta_value(meta, f"AF_point_{k}", (2,), h5)
     M = _meta_value(meta, f"M{k}", (3, 3), h5)
     f_numbers = f_numbers_of(cam_dir)
-    sharp, bits = read_linear_rgb(cam_dir / "FN_22.png", cfg["curve"])
+    sharp, sharp_stored = read_linear_rgb(cam_dir / "FN_22.png", cfg["curve"])
     depth = read_depth_mm_u16(cam_dir / "dep.png")
     H, W = same_size(cam_dir, **{"FN_22.png": sharp, "dep.png": depth})
     r0, r1, c0, c1 = crop_box(cfg["crop"].get(cam, "release") if isinstance(cfg["crop"], dict) else cfg["crop"],
@@ -121,11 +121,14 @@ def _camera_captures(scene_dir: Path, split: str, cam: str, k: int, meta: dict[s
     crop = (slice(r0, r1), slice(c0, c1))
     for N in f_numbers:
         n = _fn_name(N)
-        left, _ = read_linear_rgb(cam_dir / f"FN_{n}_l.png", cfg["curve"])
-        right, _ = read_linear_rgb(cam_dir / f"FN_{n}_r.png", cfg["curve"])
-        comb, _ = read_linear_rgb(cam_dir / f"FN_{n}_c.png", cfg["curve"])
+        fr = Frames(cfg["curve"])
+        fr.note("FN_22.png", sharp_stored)
+        left = fr.read(f"FN_{n}_l.png", cam_dir / f"FN_{n}_l.png")
+        right = fr.read(f"FN_{n}_r.png", cam_dir / f"FN_{n}_r.png")
+        comb = fr.read(f"FN_{n}_c.png", cam_dir / f"FN_{n}_c.png")
         same_size(cam_dir, **{"FN_22.png": sharp, f"FN_{n}_l.png": left, f"FN_{n}_r.png": right, f"FN_{n}_c.png": comb})
         exp = measure_exposure(left[crop], right[crop], sharp[crop], comb[crop], where=str(cam_dir / f"FN_{n}_*.png"))
+        warns = fr.settle(left[crop], right[crop], sharp[crop], comb[crop], exp.combined_residual, cfg["strict"], cam_dir)
         lo, ro, so = exp.apply(left[crop], right[crop], sharp[crop])
         yield Capture(
             scene=scene_dir.name, sharp=so, left=lo, right=ro, depth_mm=depth[crop].copy(), f_number=N,
@@ -133,8 +136,9 @@ def _camera_captures(scene_dir: Path, split: str, cam: str, k: int, meta: dict[s
             split=split, focus_point_px=(float(af[0]) - c0, float(af[1]) - r0),
             frame_origin_px=(c0, r0) if (r0, r1, c0, c1) != (0, H, 0, W) else None, frame_size=(W, H),
             extra={"source": SOURCE, "sharp_f_number": SHARP_F_NUMBER, "exposure": exp.to_json(),
-                   "transfer_curve": cfg["curve"], "bit_depth": bits,
-                   "pinhole_focal_length_mm": float(M[0, 0]) * pitch, "release_split": split},
+                   "transfer_curve": cfg["curve"], "bit_depth": fr.bits,
+                   "pinhole_focal_length_mm": float(M[0, 0]) * pitch, "release_split": split,
+                   **({"input_warnings": warns} if warns else {})},
         )
 
 
@@ -145,7 +149,8 @@ def _scene_captures(scene_dir: Path, split: str, cfg: dict[str, Any]) -> Iterato
 
 
 def dp5k_sources(src: str | os.PathLike[str], crop: str | dict[str, Any] = "release", curve: str = "srgb",
-                 focal_length_mm: float = FOCAL_LENGTH_MM, sensor_width_mm: float = SENSOR_WIDTH_MM) -> list[SceneSource]:
+                 focal_length_mm: float = FOCAL_LENGTH_MM, sensor_width_mm: float = SENSOR_WIDTH_MM,
+                 strict: bool = False) -> list[SceneSource]:
     """Scenes of a DP5K release root (module docstring), in their own splits.
 
     Args:
@@ -155,16 +160,19 @@ def dp5k_sources(src: str | os.PathLike[str], crop: str | dict[str, Any] = "rele
         curve: transfer curve of the images (``srgb`` or ``linear``).
         focal_length_mm: thin-lens focal length (the release reader's 85 mm).
         sensor_width_mm: sensor width; the pixel pitch is this / the frame width (36 / 1680 mm in the release).
+        strict: refuse a scene with inconsistent files (a gray frame beside colour ones, 8 and 16-bit mixed, a
+            curve that does not linearise) instead of warning.
     """
     root = Path(src)
     splits = [s for s in ("train", "val", "test") if (root / s).is_dir()]
     if not splits:
         raise BadInputError("no train/, val/ or test/ folder (expected ROOT/<split>/<scene>/meta_data.h5)", where=root)
-    cfg = {"crop": crop, "curve": curve, "focal_length_mm": float(focal_length_mm), "sensor_width_mm": float(sensor_width_mm)}
+    cfg = {"crop": crop, "curve": curve, "focal_length_mm": float(focal_length_mm), "sensor_width_mm": float(sensor_width_mm),
+           "strict": strict}
     out = []
     for split in splits:
         for scene_dir in sorted(p for p in (root / split).iterdir() if p.is_dir() and not p.name.startswith(".")):
-            out.append(SceneSource(scene_dir.name, scene_dir, lambda d=scene_dir, s=split: _scene_captures(d, s, cfg)))
+            out.append(SceneSource(scene_dir.name, scene_dir, lambda d=scene_dir, s=split: _scene_captures(d, s, cfg), split))
     if not out:
         raise BadInputError("no scene folders under the split folders", where=root)
     return out

@@ -30,7 +30,7 @@ import numpy as np
 
 from dp5k_common.errors import BadInputError
 
-from .capture import Capture, SceneSource, read_linear_rgb, same_size
+from .capture import Capture, Frames, SceneSource, same_size
 from .exposure import measure_exposure
 
 SENSOR_WIDTH_MM = 36.0
@@ -47,28 +47,31 @@ def _find(folder: Path, stem: str) -> Path:
     raise BadInputError(f"missing file {stem}.png", where=folder)
 
 
-def _capture(root: Path, split: str, stem: str, f_number: float, curve: str) -> Iterator[Capture]:
+def _capture(root: Path, split: str, stem: str, f_number: float, curve: str, strict: bool) -> Iterator[Capture]:
     comb_p = _find(root / f"{split}_c" / "source", stem)
     sharp_p = _find(root / f"{split}_c" / "target", stem)
     left_p = _find(root / f"{split}_l" / "source", stem)
     right_p = _find(root / f"{split}_r" / "source", stem)
-    comb, bits = read_linear_rgb(comb_p, curve)
-    sharp, _ = read_linear_rgb(sharp_p, curve)
-    left, _ = read_linear_rgb(left_p, curve)
-    right, _ = read_linear_rgb(right_p, curve)
+    fr = Frames(curve)
+    comb, sharp = fr.read("c/source", comb_p), fr.read("c/target", sharp_p)
+    left, right = fr.read("l/source", left_p), fr.read("r/source", right_p)
     H, W = same_size(comb_p.parent.parent.parent, **{comb_p.name + " (c/source)": comb, "c/target": sharp,
                                                       "l/source": left, "r/source": right})
     exp = measure_exposure(left, right, sharp, comb, where=str(comb_p))
+    warns = fr.settle(left, right, sharp, comb, exp.combined_residual, strict, comb_p)
     lo, ro, so = exp.apply(left, right, sharp)
     yield Capture(scene=stem, sharp=so, left=lo, right=ro, depth_mm=np.zeros((H, W), np.float32), f_number=f_number,
                   focus_distance_mm=PLACEHOLDER_FOCUS_MM, focal_length_mm=PLACEHOLDER_FOCAL_MM,
                   pixel_pitch_mm=SENSOR_WIDTH_MM / W, camera="5d4", split=split,
                   extra={"source": SOURCE, "sharp_f_number": 22.0, "optics_known": False, "has_depth": False,
-                         "exposure": exp.to_json(), "transfer_curve": curve, "bit_depth": bits})
+                         "exposure": exp.to_json(), "transfer_curve": curve, "bit_depth": fr.bits,
+                         **({"input_warnings": warns} if warns else {})})
 
 
-def dpdd_sources(src: str | os.PathLike[str], f_number: float = 4.0, curve: str = "srgb") -> list[SceneSource]:
-    """Scenes of a DPDD copy (module docstring), one pair each, in their own splits."""
+def dpdd_sources(src: str | os.PathLike[str], f_number: float = 4.0, curve: str = "srgb",
+                 strict: bool = False) -> list[SceneSource]:
+    """Scenes of a DPDD copy (module docstring), one pair each, in their own splits; ``strict``: inconsistent files
+    (gray beside colour, 8 and 16-bit mixed, a curve that does not linearise) refuse the scene instead of a warning."""
     root = Path(src)
     if not root.is_dir():
         raise BadInputError("source folder not found", where=root)
@@ -84,7 +87,8 @@ def dpdd_sources(src: str | os.PathLike[str], f_number: float = 4.0, curve: str 
         if not folder.is_dir():
             continue
         for p in sorted(q for q in folder.iterdir() if q.suffix in _EXTS and not q.name.startswith(".")):
-            out.append(SceneSource(p.stem, p, lambda s=split, st=p.stem: _capture(root, s, st, float(f_number), curve)))
+            out.append(SceneSource(p.stem, p, lambda s=split, st=p.stem: _capture(root, s, st, float(f_number), curve, strict),
+                                   split))
     if not out:
         raise BadInputError("no images in the {train,val,test}_c/source folders", where=root)
     return out

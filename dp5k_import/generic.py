@@ -36,7 +36,7 @@ import numpy as np
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import read_image_raw, read_json
 
-from .capture import CURVES, Capture, SceneSource, read_linear_rgb, same_size
+from .capture import CURVES, Capture, Frames, SceneSource, read_linear_rgb, same_size
 from .exposure import measure_exposure
 
 EXTS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -88,14 +88,15 @@ def read_depth(path: Path, scale_mm: float) -> np.ndarray:
     return np.where(np.isfinite(mm) & (mm > 0), mm, 0.0).astype(np.float32)
 
 
-def _captures(folder: Path, scene: str, split: str | None, optics: dict[str, Any]) -> Iterator[Capture]:
+def _captures(folder: Path, scene: str, split: str | None, optics: dict[str, Any], strict: bool) -> Iterator[Capture]:
     if (folder / "optics.json").is_file():
         optics = load_optics(folder / "optics.json", optics)
     curve = optics.get("curve", "srgb")
     if curve not in CURVES:
         raise BadInputError(f"'curve' must be one of {', '.join(CURVES)}, got {curve!r}", where=optics.get("_where"))
     sharp_p = find_image(folder, "sharp")
-    sharp, bits = read_linear_rgb(sharp_p, curve)
+    assert sharp_p is not None
+    sharp, sharp_stored = read_linear_rgb(sharp_p, curve)
     H, W = sharp.shape[:2]
     depth_p = find_image(folder, "depth", required=False)
     depth = read_depth(depth_p, _number(optics, "depth_scale_mm", default=1.0)) if depth_p else np.zeros((H, W), np.float32)
@@ -119,24 +120,29 @@ def _captures(folder: Path, scene: str, split: str | None, optics: dict[str, Any
             raise BadInputError("missing left.<png|tif|jpg> (or left_f<N>.<ext> per f-number)", where=folder)
         views = [(N, f"left_f{N:g}", f"right_f{N:g}", f"combined_f{N:g}") for N in fns]
     for N, ln, rn, cn in views:
-        left, _ = read_linear_rgb(find_image(folder, ln), curve)  # type: ignore[arg-type]
-        right, _ = read_linear_rgb(find_image(folder, rn), curve)  # type: ignore[arg-type]
+        fr = Frames(curve)
+        fr.note(sharp_p.name, sharp_stored)
+        left_p, right_p = find_image(folder, ln), find_image(folder, rn)
+        assert left_p is not None and right_p is not None
+        left, right = fr.read(left_p.name, left_p), fr.read(right_p.name, right_p)
         comb_p = find_image(folder, cn, required=False)
-        comb = read_linear_rgb(comb_p, curve)[0] if comb_p else None
+        comb = fr.read(comb_p.name, comb_p) if comb_p else None
         same_size(folder, sharp=sharp, **{ln: left, rn: right}, **({cn: comb} if comb is not None else {}))
         exp = measure_exposure(left, right, sharp, comb, where=str(folder))
+        warns = fr.settle(left, right, sharp, comb, exp.combined_residual, strict, folder)
         lo, ro, so = exp.apply(left, right, sharp)
         yield Capture(scene=scene, sharp=so, left=lo, right=ro, depth_mm=depth, f_number=N, focus_distance_mm=focus_mm,
                       focal_length_mm=focal_mm, pixel_pitch_mm=pitch, camera=str(optics.get("camera", "cam0")),
                       split=split, focus_point_px=None if fp is None else (float(fp[0]), float(fp[1])),
                       extra={"source": str(optics.get("source", "dp5k import generic")),
                              "sharp_f_number": _number(optics, "sharp_f_number", positive=False, default=22.0),
-                             "exposure": exp.to_json(), "transfer_curve": curve, "bit_depth": bits,
-                             "has_depth": depth_p is not None})
+                             "exposure": exp.to_json(), "transfer_curve": curve, "bit_depth": fr.bits,
+                             "has_depth": depth_p is not None, **({"input_warnings": warns} if warns else {})})
 
 
-def generic_sources(src: str | os.PathLike[str]) -> list[SceneSource]:
-    """Scenes of a generic layout (module docstring)."""
+def generic_sources(src: str | os.PathLike[str], strict: bool = False) -> list[SceneSource]:
+    """Scenes of a generic layout (module docstring); ``strict``: a scene with inconsistent files (a gray frame
+    beside colour ones, 8 and 16-bit mixed, a curve that does not linearise) is refused instead of warned about."""
     root = Path(src)
     if not (root / "optics.json").is_file():
         raise BadInputError("missing optics.json (the optics of the scenes; see `dp5k import --help`)", where=root)
@@ -145,7 +151,8 @@ def generic_sources(src: str | os.PathLike[str]) -> list[SceneSource]:
     split_dirs = [(s, root / s) for s in SPLITS if (root / s).is_dir()]
     for split, base in split_dirs or [(None, root)]:
         for folder in sorted(p for p in base.iterdir() if p.is_dir() and not p.name.startswith(".")):
-            out.append(SceneSource(folder.name, folder, lambda f=folder, s=split: _captures(f, f.name, s, optics)))
+            out.append(SceneSource(folder.name, folder, lambda f=folder, s=split: _captures(f, f.name, s, optics, strict),
+                                   split))
     if not out:
         raise BadInputError("no scene folders", where=root)
     return out

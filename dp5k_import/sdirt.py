@@ -62,12 +62,14 @@ def _flat_capture(dist_dir: Path, scene: str, aperture: str, sharp: str) -> Iter
     H, W = same_size(dist_dir, f4_l=l4, f4_r=r4, f20_l=l20, f20_r=r20)
     left, right = l4 / 2, r4 / 2
     sh = (l20 + r20) / 2
-    sh = sh * float((left + right).mean() / max(sh.mean(), 1e-6))
+    gain = float((left + right).mean() / max(sh.mean(), 1e-6))
+    exposure = {"views_gain": 0.5, "sharp_gain": gain, "headroom": 1.0, "combined_residual": None, "pixels": H * W,
+                "sharp_from": "mean of the f/20 views"}
     yield Capture(
-        scene=scene, sharp=sh.astype(np.float32), left=left, right=right,
+        scene=scene, sharp=(sh * gain).astype(np.float32), left=left, right=right,
         depth_mm=np.full((H, W), d_mm, np.float32), f_number=float(aperture.lstrip("f")),
         focus_distance_mm=SDIRT_FOCUS_MM, focal_length_mm=SDIRT_FOCAL_MM, pixel_pitch_mm=SDIRT_SENSOR_W_MM / W,
-        camera="r6m2", extra={"source": SOURCE, "sharp_f_number": float(sharp.lstrip("f"))},
+        camera="r6m2", extra={"source": SOURCE, "sharp_f_number": float(sharp.lstrip("f")), "exposure": exposure},
     )
 
 

@@ -5,7 +5,10 @@ Tiles carry ``crop_origin_px`` and ``full_image_size`` in params.json so field p
 crop of its camera frame (the DP5K release's region of interest) carries the same keys.
 
 A scene whose files are malformed is reported (scene and file) and none of its pairs stay; the other scenes are
-written, ``dataset.json`` lists them, and :class:`PartialFailureError` (exit 8) ends the import.
+written, ``dataset.json`` lists them (``import_failures``), and :class:`PartialFailureError` (exit 8) ends the
+import; ``resume`` then keeps what was written and retries the rest. Every pair records its source capture
+(``source_id``) and sources, not tiles, are split (:mod:`.plan`). ``report.md`` / ``report.json`` and a preview per
+source (:mod:`.report`) say what was imported.
 """
 
 from __future__ import annotations
@@ -15,21 +18,19 @@ import os
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from dp5k_common.dataset import (
-    SPLITS,
-    PairParams,
-    split_scenes,
-    write_index,
-    write_pair,
-)
+from dp5k_common.dataset import SPLITS, PairParams, write_index, write_pair
 from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.optics import coc_diameter_px
+from dp5k_common.outdir import check_out_dir
 from dp5k_common.progress import progress
 
 from .capture import Capture, SceneSource
+from .plan import read_previous, safe_ids, split_note, split_sources
+from .report import PREVIEWS, write_preview, write_report
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,9 @@ def _tiles(H: int, W: int, tile: tuple[int, int] | None) -> list[tuple[int, int,
     return [(oy + i * th, ox + j * tw, th, tw) for i in range(ny) for j in range(nx)]
 
 
-def _write_capture(root: Path, cap: Capture, tile: tuple[int, int] | None) -> list[tuple[str, str]]:
-    """Write one capture's pair(s); returns (scene, pair id) per pair written."""
+def _write_capture(root: Path, cap: Capture, tile: tuple[int, int] | None, source_id: str, source_name: str | None
+                   ) -> list[str]:
+    """Write one capture's pair(s) (scene ids from ``source_id``); returns the pair ids written."""
     H, W = cap.depth_mm.shape
     for name, img in (("sharp", cap.sharp), ("left", cap.left), ("right", cap.right)):
         if img.shape != (H, W, 3):
@@ -59,9 +61,9 @@ def _write_capture(root: Path, cap: Capture, tile: tuple[int, int] | None) -> li
     written = []
     for (y0, x0, h, w) in _tiles(H, W, tile):
         tiled = tile is not None
-        scene = f"{cap.scene}_t{y0 // h}{x0 // w}" if tiled else cap.scene
+        scene = f"{source_id}_t{y0 // h}{x0 // w}" if tiled else source_id
         pid = f"{scene}_{cap.camera}_f{cap.f_number:g}"
-        extra = dict(cap.extra)
+        extra = {**cap.extra, "source_id": source_id, **({"source_name": source_name} if source_name else {})}
         if tiled or cap.frame_origin_px is not None:
             Wf, Hf = cap.frame_size or (W, H)
             extra.update({"crop_origin_px": [ox + x0, oy + y0], "full_image_size": [int(Wf), int(Hf)]})
@@ -71,70 +73,112 @@ def _write_capture(root: Path, cap: Capture, tile: tuple[int, int] | None) -> li
         write_pair(root, params, sharp=np.clip(cap.sharp[sl], 0, 1), left=np.clip(cap.left[sl], 0, 1),
                    right=np.clip(cap.right[sl], 0, 1), depth_mm=cap.depth_mm[sl],
                    coc_px=np.nan_to_num(coc[sl], nan=0.0), overwrite=True)
-        written.append((scene, pid))
+        written.append(pid)
     return written
 
 
 def write_imported(out: str | os.PathLike[str], sources: Iterable[SceneSource | Capture],
-                   tile: tuple[int, int] | None = None, seed: int = 0, source: str = "import",
+                   tile: tuple[int, int] | None = None, seed: int = 0, source: str = "import", resume: bool = False,
                    **index_extra: object) -> dict[str, list[str]]:
-    """Write scenes (optionally tiled) as a format-v1 dataset; returns the splits (pair ids).
+    """Write scenes (optionally tiled) as a format-v1 dataset, with report.md / report.json and a preview per
+    source; returns the splits (pair ids).
 
-    Captures that carry a ``split`` keep it (tiles inherit it); the others are split by scene
-    (:func:`dp5k_common.dataset.split_scenes`, seeded). A bare :class:`Capture` counts as a scene of its own.
+    Every pair records its source (params.json ``source_id``, and ``source_name`` when the source's own name is not
+    a safe id: ``my scene`` -> ``my_scene``); sources keep their own split (``SceneSource.split`` or
+    ``Capture.split``), the others are split by source before anything is read (:mod:`.plan`), so a source that
+    fails now lands where it would have. A bare :class:`Capture` is a source of its own.
+
+    Args:
+        resume: an existing import at ``out`` is continued: sources whose pairs are all there are kept untouched,
+            the others (failed before, or new) are imported; without it an existing dataset is refused.
 
     Raises:
-        BadInputError: the output already holds a dataset, a tile does not fit, nothing could be imported
-            (the error of the only scene, or a list of the scenes' errors).
+        BadInputError: OUT cannot be written, the output already holds a dataset (and not ``resume``), a tile does
+            not fit, nothing could be imported (the error of the only scene, or a list of the scenes' errors).
         PartialFailureError: some scenes failed (named with their file and problem); the others were written.
     """
     root = Path(out)
-    if (root / "dataset.json").exists():
-        raise BadInputError("a dataset already exists here (imports never overwrite)", where=root / "dataset.json")
-    items = list(sources)
-    scene_pairs: dict[str, list[str]] = {}
-    scene_split: dict[str, str] = {}
-    failed: list[tuple[str, BadInputError]] = []
-    for item in progress(items, desc="import", unit="scene"):
-        src = item if isinstance(item, SceneSource) else SceneSource(item.scene, Path(item.scene), lambda c=item: iter([c]))
-        written: list[tuple[str, str]] = []
-        splits_here: dict[str, str] = {}
+    check_out_dir(root, create=False, option="OUT")
+    prev = read_previous(root, resume)
+    items = [s if isinstance(s, SceneSource) else SceneSource(s.scene, Path(s.scene), lambda c=s: iter([c]), s.split)
+             for s in sources]
+    ids = safe_ids([s.scene for s in items])
+    own = {ids[s.scene]: s.split for s in items if s.split is not None}
+    bad = sorted({sp for sp in own.values() if sp not in SPLITS})
+    if bad:
+        raise BadInputError(f"unknown split(s) {', '.join(bad)} (train, val, test)", where=root)
+    split_of = {**split_sources([ids[s.scene] for s in items if s.split is None], seed), **own,
+                **{sid: sp for sid, (sp, _) in prev.kept.items()}}
+    todo = [s for s in items if ids[s.scene] not in prev.kept]
+    pairs_of = {sid: pids for sid, (_, pids) in prev.kept.items()}
+    records = {sid: prev.records.get(sid, {"source_id": sid, "split": sp, "pairs": len(pids)})
+               for sid, (sp, pids) in prev.kept.items()}
+    failed: list[tuple[SceneSource, BadInputError]] = []
+    for src in progress(todo, desc="import", unit="scene"):
+        sid = ids[src.scene]
         try:
-            for cap in src.load():
-                if cap.split is not None and cap.split not in SPLITS:
-                    raise BadInputError(f"unknown split {cap.split!r}", where=src.where)
-                for scene, pid in _write_capture(root, cap, tile):
-                    written.append((scene, pid))
-                    if cap.split is not None:
-                        splits_here[scene] = cap.split
+            pairs_of[sid], records[sid], split_of[sid] = _import_source(root, src, sid, split_of[sid], tile)
         except BadInputError as exc:
-            for _, pid in written:  # a failed scene leaves none of its pairs behind
-                shutil.rmtree(root / "pairs" / pid, ignore_errors=True)
-            failed.append((src.scene, exc))
+            failed.append((src, exc))
             log.error("scene %s not imported: %s", src.scene, exc.one_line())
-            continue
-        for scene, pid in written:
-            scene_pairs.setdefault(scene, []).append(pid)
-        scene_split.update(splits_here)
-    if not scene_pairs:
+    if not pairs_of:
         if len(failed) == 1:
             raise failed[0][1]
         if failed:
             raise BadInputError(f"no scene could be imported ({_summary(failed)})", where=root)
         raise BadInputError("nothing to import", where=root)
-    free = [sc for sc in scene_pairs if sc not in scene_split]
-    split = split_scenes(free, seed=seed) if free else {name: [] for name in SPLITS}
-    for sc, name in scene_split.items():
-        split[name].append(sc)
-    splits = {k: [p for sc in sorted(v) for p in scene_pairs[sc]] for k, v in split.items()}
-    write_index(root, splits, source=source, **index_extra,
-                import_failures=[{"scene": sc, "error": exc.one_line()} for sc, exc in failed])
+    done = {sid: split_of[sid] for sid in pairs_of}
+    note = split_note(done, own=bool(own))
+    if note:
+        log.warning("%s", note)
+    splits: dict[str, list[str]] = {name: [] for name in SPLITS}
+    for sid in sorted(pairs_of):
+        splits[split_of[sid]] += pairs_of[sid]
+    failures = [{"scene": src.scene, "source_id": ids[src.scene], "split": split_of[ids[src.scene]],
+                 "error": exc.one_line()} for src, exc in failed]
+    write_index(root, splits, source=source, **index_extra, import_failures=failures)
+    write_report(root, source, splits, [records[sid] for sid in sorted(records)], failures, note, tile,
+                 resumed=bool(prev.kept))
     if failed:
         raise PartialFailureError(f"{len(failed)} of {len(items)} scenes not imported ({_summary(failed)}); the "
-                                  f"others are in the dataset (dataset.json 'import_failures')", where=root)
+                                  f"others are in the dataset (dataset.json 'import_failures'; fix them and run again "
+                                  f"with --resume)", where=root)
     return splits
 
 
-def _summary(failed: list[tuple[str, BadInputError]], n: int = 3) -> str:
-    text = "; ".join(f"scene {sc}: {exc.one_line()}" for sc, exc in failed[:n])
+def _import_source(root: Path, src: SceneSource, sid: str, split: str, tile: tuple[int, int] | None
+                   ) -> tuple[list[str], dict[str, Any], str]:
+    """Load and write one source: its pair ids, its report record and its split (a capture's own split wins when
+    the source has none). On any error none of its pairs (nor its preview) stay."""
+    written: list[str] = []
+    name = src.scene if sid != src.scene else None
+    record: dict[str, Any] = {"source_id": sid, **({"name": src.scene} if name else {}), "captures": []}
+    cap_splits: set[str] = set()
+    try:
+        for k, cap in enumerate(src.load()):
+            if cap.split is not None:
+                if cap.split not in SPLITS:
+                    raise BadInputError(f"unknown split {cap.split!r}", where=src.where)
+                cap_splits.add(cap.split)
+            if len(cap_splits) > 1:
+                raise BadInputError(f"the captures of one source are in different splits ({', '.join(sorted(cap_splits))})",
+                                    where=src.where)
+            written += _write_capture(root, cap, tile, sid, name)
+            record["captures"].append({"camera": cap.camera, "f_number": cap.f_number,
+                                       "exposure": cap.extra.get("exposure"),
+                                       "input_warnings": list(cap.extra.get("input_warnings", []))})
+            if k == 0:
+                record["preview"] = write_preview(root, sid, cap, tile)
+    except BadInputError:
+        for pid in written:  # a failed scene leaves none of its pairs behind
+            shutil.rmtree(root / "pairs" / pid, ignore_errors=True)
+        (root / PREVIEWS / f"{sid}.png").unlink(missing_ok=True)
+        raise
+    split = cap_splits.pop() if cap_splits and src.split is None else split
+    record.update(split=split, pairs=len(written))
+    return written, record, split
+
+
+def _summary(failed: list[tuple[SceneSource, BadInputError]], n: int = 3) -> str:
+    text = "; ".join(f"scene {src.scene}: {exc.one_line()}" for src, exc in failed[:n])
     return text + (f"; ... {len(failed) - n} more" if len(failed) > n else "")

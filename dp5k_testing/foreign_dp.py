@@ -185,8 +185,11 @@ class Planted:
     a: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def of(cls, effect: str | None, strength: float = 1.0) -> "Planted":
-        """``effect`` is a name, ``none``, or several names joined by ``+`` (each at ``strength``)."""
+    def of(cls, effect: str | dict[str, float] | None, strength: float = 1.0) -> "Planted":
+        """``effect`` is a name, ``none``, or several names joined by ``+`` (each at ``strength``), or a mapping
+        name -> that effect's own strength (times ``strength``)."""
+        if isinstance(effect, dict):
+            return cls({name: EFFECT_DEFAULTS[name] * s * strength for name, s in effect.items()})
         names = [] if effect in (None, "none") else effect.split("+")
         return cls({name: EFFECT_DEFAULTS[name] * strength for name in names})
 
@@ -321,7 +324,7 @@ def _png16(path: Path, rgb: np.ndarray) -> None:
 
 def write_dataset(
     out: Path,
-    effect: str | None,
+    effect: str | dict[str, float] | None,
     strength: float = 1.0,
     *,
     scenes: int = 12,
@@ -335,7 +338,7 @@ def write_dataset(
     noise: bool = True,
     sampling: str = "box",
 ) -> dict[str, list[str]]:
-    """Write a format-v1 dataset of ``scenes`` x ``f_numbers`` pairs with ``effect`` planted.
+    """Write a format-v1 dataset of ``scenes`` x ``f_numbers`` pairs with ``effect`` planted (:meth:`Planted.of`).
 
     Splits by scene: the last 2 scenes test, the 2 before val, the rest train. ``sharp_f_number`` is the
     f-number ``sharp`` is rendered at (0 = all-in-focus); with ``state_sharp_f_number`` False params.json

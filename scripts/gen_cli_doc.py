@@ -34,6 +34,7 @@ progress bars (`DP5K_PROGRESS=0` also hides them). Errors print one line,
 | 6 | calibration failed or exceeded its bound |
 | 7 | a pipeline stage failed |
 | 8 | some items failed, the others completed (see the report) |
+| 9 | the result was written but is below its quality bound, marked so in its report (`sl-depth`: low coverage, a calibration the refinement could not fix) |
 | 130 | interrupted; finished work kept, rerun to resume |
 """
 

@@ -124,6 +124,7 @@ class EosProp(IntEnum):
     AUTO_EXPOSURE_MODE = 0xD105
     DRIVE_MODE = 0xD106
     FOCUS_MODE = 0xD108
+    BATTERY_POWER = 0xD111
     AVAILABLE_SHOTS = 0xD11B
     CAPTURE_DESTINATION = 0xD11C
     IMAGE_FORMAT = 0xD120
@@ -140,6 +141,10 @@ U32_PROPS = frozenset({EosProp.FOCUS_MODE, EosProp.AVAILABLE_SHOTS, EosProp.CAPT
 """EOS properties whose PropValueChanged value is a u32 (the others dp5k uses are u16)."""
 STRING_PROPS = frozenset({EosProp.SERIAL_NUMBER, EosProp.LENS_NAME})
 IMAGE_FORMAT_PROPS = frozenset({EosProp.IMAGE_FORMAT, EosProp.IMAGE_FORMAT_CF, EosProp.IMAGE_FORMAT_SD})
+
+# EOS BatteryPower (0xD111, u16) -> charge, as libgphoto2 reads it (config.c, Canon EOS battery level)
+EOS_BATTERY_LEVELS: dict[int, str] = {0: "low", 5: "25%", 1: "50%", 4: "75%", 2: "100%"}
+BATTERY_LEVEL_PROP = 0x5001  # standard PTP BatteryLevel (u8 range)
 
 CAPTURE_DEST_CARD = 2
 CAPTURE_DEST_PC = 4

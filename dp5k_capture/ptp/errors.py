@@ -39,3 +39,15 @@ class StallError(DeviceError):
 
 class PTPTimeoutError(DeviceTimeoutError):
     """The device did not answer a phase of a transaction within its timeout."""
+
+
+class UsbAccessError(DeviceError):
+    """The USB device node cannot be opened: this user lacks permission (no udev rule)."""
+
+
+class UsbBusyError(DeviceError):
+    """Another process (or a kernel driver) has claimed the body's PTP interface."""
+
+
+class CardFullError(DeviceError):
+    """The body's card is full (StoreFull 0x200C, or RemoteRelease result 7)."""

@@ -192,6 +192,8 @@ class PTPSession:
             ok: response codes accepted as success.
         """
         step = name_of(Op, op)
+        if self.unfinished_tid is not None:  # the last transaction was cut off (Ctrl-C, an error mid-read): its
+            self.abort_unfinished()  # data would answer this one, so cancel it and drain the pipe first
         timeout_ms = self._timeout_ms(timeout_s)
         delay = self.config.busy_delay_s
         stalls = 0

@@ -6,6 +6,15 @@ renders one exposure through an injected :class:`BodyOptics` (the virtual studio
 unit tests) at the current aperture, shutter, ISO and focus. Quirks of the real body are kept: the raw
 DeviceInfo reports VendorExtensionID 6, and after CloseSession every operation answers
 OperationNotSupported (libgphoto2 ``PTP_DONT_CLOSE_SESSION``).
+
+**Autofocus repeatability.** The first AF of a body lands on the subject at the AF point (how far the lens
+truly focuses from what the body records is the studio's ``focus_offset`` effect). Every later AF, and the
+lens of a body that was re-created (a new in-process ``--sim`` run: the bodies of the last run are gone),
+lands ``AF_SCATTER_REL`` (0.3-1.0 %) of the distance in front of or behind it, drawn from a generator seeded
+by ``af_seed`` (the studio seed), ``run``, the serial and the AF count: AF twice and the focus differs, as on a
+real lens.
+FocusMode (0xD108) can be set to MF (3) by the PC unless ``BodyFaults.focus_mode_fixed``; in MF, DoAf fails
+(the AF state says failed) and no release refocuses.
 """
 
 from __future__ import annotations
@@ -13,8 +22,11 @@ from __future__ import annotations
 import logging
 import random
 import struct
+import zlib
 from dataclasses import dataclass, field
 from typing import Protocol
+
+import numpy as np
 
 from ..ptp import eos_events as ev
 from ..ptp.codes import (
@@ -24,6 +36,8 @@ from ..ptp.codes import (
     ISO_CODES,
     OFC_ASSOCIATION,
     OFC_DNG,
+    EOS_BATTERY_LEVELS,
+    FOCUS_MODE_MF,
     EosEvent,
     EosProp,
     Op,
@@ -44,6 +58,11 @@ log = logging.getLogger(__name__)
 STORAGE_ID = 0x00010001
 RAW_FORMAT = (6, 0, 4)  # ImageFormat entry: kind 6 = RAW, size 0 = L, compression 4 = lossless
 CARD_SHOTS = 900  # AvailableShots the simulated card has room for
+CARD_BYTES = 64_000_000_000  # a 64 GB card ...
+CARD_FREE_BYTES = 60_000_000_000  # ... with 60 GB free before this session's files
+BATTERY_PERCENT = 75
+AF_SCATTER_REL = (0.003, 0.010)  # |focus distance error| of a repeated AF, relative (see the module docstring)
+FOCUS_MODE_ONE_SHOT = 0
 CARD_IMAGE_FOLDER = 0x9010_0000  # DCIM/100CANON on the card
 CARD_FOLDERS = {0x9000_0000: ("DCIM", 0), CARD_IMAGE_FOLDER: ("100CANON", 0x9000_0000)}  # handle -> (name, parent)
 OLC_VERSION = 0xB  # OLC field layout of the 5Ds generation (the 5D Mark IV's own version is not recorded)
@@ -91,6 +110,9 @@ class BodyFaults:
         af_result: what DoAf reports in OLC focus info: ``ok`` (in focus), ``fail`` (AF failed), ``silent`` (nothing).
         busy_rate: every operation in a session answers DeviceBusy with this probability (seeded ``rng``);
             ``busy_answers`` counts them.
+        full_from_release: the release (counted over the body's life) that finds the card full, and every one
+            after it (``--sim-faults full@K``); the card reports no free space once the next release would fail.
+        focus_mode_fixed: the PC cannot set FocusMode (as on a body whose lens switch decides it).
     """
 
     busy: dict[int, int] = field(default_factory=dict)
@@ -100,6 +122,8 @@ class BodyFaults:
     busy_rate: float = 0.0
     busy_answers: int = 0
     rng: random.Random = field(default_factory=lambda: random.Random(0))
+    full_from_release: int | None = None
+    focus_mode_fixed: bool = False
 
 
 @dataclass
@@ -118,6 +142,10 @@ class SimulatedEOS:
         optics: the world the body photographs.
         vendor_extension_id: what DeviceInfo reports (6 like the real 5D Mark IV over USB).
         lens_name: reported LensName; apertures offered are those of an EF 85mm f/1.8.
+        af_seed: seeds the AF scatter (the studio seed).
+        run: how many runs of this scene came before this body was made (in-process ``--sim`` makes new bodies
+            each run; a run > 0 means the lens was focused by a body of an earlier run, wherever that AF landed).
+        lens_point_px: where a re-created body's lens was last focused (its scene focus point, raw px).
     """
 
     MODEL = "Canon EOS 5D Mark IV"
@@ -130,6 +158,9 @@ class SimulatedEOS:
         vendor_extension_id: int = 6,
         lens_name: str = "EF85mm f/1.8 USM",
         faults: BodyFaults | None = None,
+        af_seed: int = 0,
+        run: int = 0,
+        lens_point_px: tuple[float, float] | None = None,
     ) -> None:
         self.serial = serial
         self.optics = optics
@@ -146,6 +177,10 @@ class SimulatedEOS:
         self.sequence = 0
         self.focus_point_px: tuple[float, float] | None = None
         self.focus_distance_m: float | None = None
+        self.af_seed, self.run = int(af_seed), int(run)
+        self.af_count = 0  # AFs of this body (the first lands on the subject, later ones scatter)
+        self.lens_point_px = lens_point_px
+        self.releases = 0
         self.pressed = 0
         self.op_log: list[int] = []
         self.last_object_bytes: bytes = b""
@@ -155,6 +190,7 @@ class SimulatedEOS:
             EosProp.SHUTTER_SPEED: sorted(TV_CODES),  # 30 s .. 1/8000 s in 1/3 stops
             EosProp.ISO: sorted(ISO_CODES.values()),
             EosProp.CAPTURE_DESTINATION: [CAPTURE_DEST_CARD, CAPTURE_DEST_PC],
+            EosProp.FOCUS_MODE: [FOCUS_MODE_ONE_SHOT, FOCUS_MODE_MF],  # not offered while faults.focus_mode_fixed
         }
         self.props: dict[int, int | str] = {
             EosProp.APERTURE: av_code(4.0),
@@ -162,7 +198,8 @@ class SimulatedEOS:
             EosProp.ISO: iso_code(100),
             EosProp.AUTO_EXPOSURE_MODE: 3,  # M
             EosProp.DRIVE_MODE: 0,
-            EosProp.FOCUS_MODE: 0,  # one-shot AF
+            EosProp.FOCUS_MODE: FOCUS_MODE_ONE_SHOT,
+            EosProp.BATTERY_POWER: next(c for c, t in EOS_BATTERY_LEVELS.items() if t == f"{BATTERY_PERCENT}%"),
             EosProp.CAPTURE_DESTINATION: CAPTURE_DEST_CARD,
             EosProp.AVAILABLE_SHOTS: CARD_SHOTS,  # room on the card (capture to card is the power-on setting)
             EosProp.EVF_OUTPUT_DEVICE: 0,
@@ -197,6 +234,8 @@ class SimulatedEOS:
         for prop, value in self.props.items():  # values first: libgphoto2 drops an AvailList for a property it has not seen yet
             self.events.append(ev.pack_prop_value(prop, value))
         for prop, values in self.avail.items():
+            if prop == EosProp.FOCUS_MODE and self.faults.focus_mode_fixed:
+                continue  # the lens switch decides: the PC is offered no choice
             self.events.append(ev.pack_avail_list(prop, values))
         self.events.append(ev.pack_image_format_value(EosProp.IMAGE_FORMAT, *self.image_format))
         self._dumped = True
@@ -213,15 +252,37 @@ class SimulatedEOS:
             sequence=self.sequence,
         )
 
-    def _autofocus(self) -> None:
-        if self.focus_point_px is not None:
-            self.focus_distance_m = float(self.optics.autofocus_m(self.serial, self.focus_point_px))
+    def _autofocus(self, point_px: tuple[float, float] | None = None) -> None:
+        """One AF at ``point_px`` (default: the live-view AF frame): the first on the subject, later ones scattered."""
+        point = point_px or self.focus_point_px
+        if point is None:
+            return
+        subject_m = float(self.optics.autofocus_m(self.serial, point))
+        self.focus_distance_m = subject_m * (1.0 + self._af_error())
+        self.af_count += 1
+
+    def _af_error(self) -> float:
+        """Relative error of this AF: 0 for the body's first, else 0.3-1.0 % in front of or behind the subject."""
+        if self.af_count == 0 and self.run == 0:
+            return 0.0
+        rng = np.random.default_rng([self.af_seed, self.run, zlib.crc32(self.serial.encode()), self.af_count])
+        return float(rng.uniform(*AF_SCATTER_REL) * rng.choice((-1.0, 1.0)))
+
+    def _read_only(self) -> set[int]:
+        fixed = {EosProp.AVAILABLE_SHOTS, EosProp.BATTERY_POWER, EosProp.OLC_INFO_VERSION, EosProp.AUTO_EXPOSURE_MODE}
+        return fixed | ({EosProp.FOCUS_MODE} if self.faults.focus_mode_fixed else set())
+
+    def card_is_full(self) -> bool:
+        """No room for the next image (``card_full``, or the next release is ``full_from_release``)."""
+        full_from = self.faults.full_from_release
+        return self.faults.card_full or (full_from is not None and self.releases + 1 >= full_from)
 
     def _expose(self) -> Reply:
-        if self.faults.card_full:
+        if self.card_is_full():
             return Reply(Resp.STORE_FULL)
-        if self.focus_distance_m is None:
-            self._autofocus()
+        self.releases += 1
+        if self.focus_distance_m is None:  # the lens sits wherever it was left: AF'd by an earlier run of this body
+            self._autofocus(self.focus_point_px or self.lens_point_px)
         self.sequence += 1
         data = self.optics.expose(self.settings())
         handle = self._next_handle
@@ -283,7 +344,10 @@ class SimulatedEOS:
     def _op_1005(self, p: tuple[int, ...], data: bytes | None) -> Reply:
         if p[0] != STORAGE_ID:
             return Reply(Resp.INVALID_STORAGE_ID)
-        info = StorageInfo(3, 2, 0, 64 << 30, 60 << 30, 900, "SD", "EOS_DIGITAL")
+        used = sum(len(o.data) for o in self.objects.values() if o.on_card)
+        free = 0 if self.card_is_full() else max(CARD_FREE_BYTES - used, 0)
+        shots = 0 if self.card_is_full() else max(CARD_SHOTS - sum(o.on_card for o in self.objects.values()), 0)
+        info = StorageInfo(3, 2, 0, CARD_BYTES, free, shots, "SD", "EOS_DIGITAL")
         return Reply(Resp.OK, data=info.pack())
 
     _op_9102 = _op_1005
@@ -345,12 +409,12 @@ class SimulatedEOS:
 
     def _op_1014(self, p: tuple[int, ...], data: bytes | None) -> Reply:
         if p[0] == 0x5001:  # BatteryLevel, u8 range 0..100
-            return Reply(Resp.OK, data=DevicePropDesc(0x5001, 2, False, 100, 80, 1, [0, 100, 1]).pack())
+            return Reply(Resp.OK, data=DevicePropDesc(0x5001, 2, False, 100, BATTERY_PERCENT, 1, [0, 100, 1]).pack())
         return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
 
     def _op_1015(self, p: tuple[int, ...], data: bytes | None) -> Reply:
         if p[0] == 0x5001:
-            return Reply(Resp.OK, data=bytes([80]))
+            return Reply(Resp.OK, data=bytes([BATTERY_PERCENT]))
         return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
 
     # EOS operations
@@ -366,7 +430,7 @@ class SimulatedEOS:
             self.image_format = struct.unpack_from("<III", data, 16)
             self.events.append(ev.pack_image_format_value(prop, *self.image_format))
             return Reply(Resp.OK)
-        if prop not in self.props or isinstance(self.props[prop], str) or prop == EosProp.AVAILABLE_SHOTS:
+        if prop not in self.props or isinstance(self.props[prop], str) or prop in self._read_only():
             return Reply(Resp.DEVICE_PROP_NOT_SUPPORTED)
         value = struct.unpack_from("<I", data, 8)[0]
         if prop in self.avail and value not in self.avail[prop]:
@@ -429,12 +493,13 @@ class SimulatedEOS:
         if not int(self.props[EosProp.EVF_OUTPUT_DEVICE]) & 2:
             return Reply(Resp.GENERAL_ERROR)
         report = self.olc_mask & OLC_FOCUS_BIT and self.faults.af_result != "silent"
+        ok = self.faults.af_result == "ok" and self.props[EosProp.FOCUS_MODE] != FOCUS_MODE_MF  # MF: the lens does not AF
         if report:
             self.events.append(pack_olc(OLC_VERSION, focus=0))
-        if self.faults.af_result == "ok":
+        if ok:
             self._autofocus()
         if report:
-            self.events.append(pack_olc(OLC_VERSION, focus=FOCUS_IN_FOCUS if self.faults.af_result == "ok" else FOCUS_FAILED))
+            self.events.append(pack_olc(OLC_VERSION, focus=FOCUS_IN_FOCUS if ok else FOCUS_FAILED))
         return Reply(Resp.OK)
 
     def _op_913d(self, p: tuple[int, ...], data: bytes | None) -> Reply:

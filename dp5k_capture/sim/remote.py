@@ -9,9 +9,12 @@ looks like an unplugged body (ENODEV).
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import mmap
+import os
+import threading
 from dataclasses import dataclass, replace
-from multiprocessing import resource_tracker, shared_memory
 from multiprocessing.connection import Client, Connection
 from pathlib import Path
 from typing import Any
@@ -21,32 +24,73 @@ import usb.core
 from numpy.typing import NDArray
 
 from dp5k_common.errors import DeviceError
+from dp5k_common.io import new_file_mode
 
 from ..display import PatternWindow
 from ..rig import RigConfig
 from .usb_backend import SimUsbBackend
 
+SHM_DIR = "/dev/shm"  # where POSIX shared memory lives on Linux
+
 
 class _Link:
-    """One request/reply connection to the server."""
+    """One request/reply connection to the server, safe against Ctrl-C and shared by threads.
 
-    def __init__(self, conn: Connection, where: str) -> None:
+    Each request carries a sequence number and its reply echoes it. A call interrupted between sending and
+    receiving (Ctrl-C at any moment, e.g. while a hung body is waited for) leaves its reply, or half of a
+    message, in the socket: that connection is out of step, so the next call opens a fresh one to the
+    server (the bodies live there and keep their state) instead of reading someone else's reply. A lock keeps
+    the keep-alive thread and the main thread from interleaving on one socket.
+    """
+
+    def __init__(self, conn: Connection, where: str, socket_path: Path | None = None) -> None:
         self.conn = conn
         self.where = where
+        self.socket_path = socket_path
+        self._seq = 0
+        self._out_of_step = False
+        self._lock = threading.Lock()
+
+    def _reconnect(self) -> None:
+        with contextlib.suppress(OSError):
+            self.conn.close()
+        if self.socket_path is None:
+            raise usb.core.USBError("No such device (the link to the sim-rig server was interrupted)", None, errno.ENODEV)
+        try:
+            self.conn = Client(str(self.socket_path), family="AF_UNIX")
+        except OSError as exc:
+            raise usb.core.USBError("No such device (the sim-rig server went away)", None, errno.ENODEV) from exc
+        self._out_of_step = False
 
     def call(self, *msg: Any) -> Any:
-        try:
-            self.conn.send(msg)
-            reply = self.conn.recv()
-        except (EOFError, OSError) as exc:
-            raise usb.core.USBError("No such device (the sim-rig server went away)", None, errno.ENODEV) from exc
+        with self._lock:
+            if self._out_of_step:
+                self._reconnect()
+            self._seq += 1
+            seq = self._seq
+            try:
+                self.conn.send(("call", seq, msg))
+                while True:
+                    got, reply = self.conn.recv()
+                    if got == seq:
+                        break
+            except (EOFError, OSError) as exc:
+                self._out_of_step = True
+                raise usb.core.USBError("No such device (the sim-rig server went away)", None, errno.ENODEV) from exc
+            except BaseException:  # Ctrl-C (or anything) between send and reply: this socket is out of step
+                self._out_of_step = True
+                raise
         if reply[0] == "ok":
             return reply[1]
         if reply[0] == "usb_timeout":
             raise usb.core.USBTimeoutError(reply[1], None, errno.ETIMEDOUT)
         if reply[0] == "usb_error":
-            raise usb.core.USBError(reply[1], None, reply[2])
+            raise usb.core.USBError(reply[1], reply[3] if len(reply) > 3 else None, reply[2])
         raise DeviceError(f"sim-rig server: {reply[1]}", where=self.where)
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.conn.close()
 
 
 class RemoteUsbDevice:
@@ -62,11 +106,17 @@ class RemoteUsbDevice:
     def bulk_out(self, data: bytes) -> int:
         return int(self._usb("bulk_out", bytes(data)))
 
-    def bulk_in(self, size: int) -> bytes:
+    def bulk_in(self, size: int, timeout_ms: int | None = None) -> bytes:
         return bytes(self._usb("bulk_in", size))
 
-    def interrupt_in(self, size: int) -> bytes:
+    def interrupt_in(self, size: int, timeout_ms: int | None = None) -> bytes:
         return bytes(self._usb("interrupt_in", size))
+
+    def open(self) -> None:
+        self._usb("open")
+
+    def claim(self) -> None:
+        self._usb("claim")
 
     def control(self, req_type: int, req: int, value: int, index: int, data: bytes | int) -> bytes | int:
         return self._usb("control", req_type, req, value, index, data)
@@ -79,16 +129,23 @@ class RemoteUsbDevice:
 
 
 class HdmiWindow:
-    """The client's headless :class:`PatternWindow`, its every frame copied into the server's HDMI framebuffer."""
+    """The client's headless :class:`PatternWindow`, its every frame copied into the server's HDMI framebuffer.
+
+    The server's shared-memory segment is mapped straight from ``/dev/shm`` (Linux), not attached through
+    ``multiprocessing.shared_memory``: Python 3.11 registers every attached segment with the resource tracker,
+    which unlinks it when this client exits, and a Ctrl-C between attaching and unregistering would remove
+    the server's framebuffer for every later client.
+    """
 
     def __init__(self, width: int, height: int, shm_name: str) -> None:
-        self.window = PatternWindow(width, height, display_index=0, settle_s=0.0, headless=True)
         self.width, self.height = width, height
-        self._shm = shared_memory.SharedMemory(name=shm_name)
-        # Python 3.11 registers an attached segment for unlinking at exit (or when this process is killed):
-        # the server owns it, and the next client must find it
-        resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
-        self._hdmi: NDArray[np.uint8] = np.ndarray((height, width), np.uint8, buffer=self._shm.buf)
+        fd = os.open(f"{SHM_DIR}/{shm_name.lstrip('/')}", os.O_RDWR)
+        try:
+            self._map = mmap.mmap(fd, width * height)
+        finally:
+            os.close(fd)
+        self._hdmi: NDArray[np.uint8] = np.ndarray((height, width), np.uint8, buffer=self._map)
+        self.window = PatternWindow(width, height, display_index=0, settle_s=0.0, headless=True)
 
     @property
     def shown(self) -> int | None:
@@ -104,7 +161,7 @@ class HdmiWindow:
     def close(self) -> None:
         self.window.close()
         del self._hdmi
-        self._shm.close()
+        self._map.close()
 
 
 class RemoteBoard:
@@ -132,13 +189,14 @@ class RemoteSimRig:
     link: _Link
 
     def write_ground_truth_once(self, session_dir: Path) -> Path:
-        return Path(self.link.call("ground_truth", str(Path(session_dir).resolve())))
+        """``ground_truth/`` written by the server, with the mode this client's umask gives new files."""
+        return Path(self.link.call("ground_truth", str(Path(session_dir).resolve()), new_file_mode()))
 
     def status(self) -> dict[str, Any]:
         return dict(self.link.call("status"))
 
     def close(self) -> None:
-        self.link.conn.close()
+        self.link.close()
 
 
 def connect_sim_rig(socket_path: Path, base: RigConfig | None = None, faults: str = "") -> RemoteSimRig:
@@ -156,7 +214,7 @@ def connect_sim_rig(socket_path: Path, base: RigConfig | None = None, faults: st
     except OSError as exc:
         raise DeviceError(f"no simulated rig serves there ({exc.strerror or exc}); start one with "
                           "python -m dp5k_capture.sim.server --socket PATH", where=where) from exc
-    link = _Link(conn, where)
+    link = _Link(conn, where, Path(socket_path))
     hello = link.call("hello")
     if faults:
         link.call("faults", faults)

@@ -36,7 +36,7 @@ from .world import FlatOptics, SimRig, StudioOptics, make_sim_rig, sim_studio_sc
 log = logging.getLogger(__name__)
 
 FLAT_RAW_SIZE_PX = (48, 32)  # the flat world's raw frames (W, H): protocol and kill/resume tests
-USB_METHODS = frozenset({"bulk_out", "bulk_in", "interrupt_in", "control", "clear_halt", "_check_present"})
+USB_METHODS = frozenset({"bulk_out", "bulk_in", "interrupt_in", "control", "clear_halt", "_check_present", "open", "claim"})
 
 
 class SimRigServer:
@@ -80,17 +80,16 @@ class SimRigServer:
         except usb.core.USBTimeoutError as exc:
             return ("usb_timeout", str(exc))
         except usb.core.USBError as exc:
-            return ("usb_error", str(exc), exc.errno)
+            return ("usb_error", exc.strerror or str(exc), exc.errno, exc.backend_error_code)
 
     def _faults(self, spec: str) -> None:
         for cam_id, plan in parse_sim_faults(spec, tuple(self.sim.usb_devices)).items():
-            dev = self.sim.usb_devices[cam_id]
-            dev.plan, dev.downloads = plan, 0  # K counts downloads from now on
-            self.sim.bodies[cam_id].faults.busy_rate = plan.busy_rate
+            self.sim.usb_devices[cam_id].arm(plan)  # K counts downloads (releases) from now on
 
     def _status(self) -> dict[str, Any]:
         return {"hangs": self.hangs, "bodies": {c: {"downloads": d.downloads, "resets": d.resets, "queued_in": sum(map(len, d._in)),
                                                      "remote_mode": self.sim.bodies[c].remote_mode,
+                                                     "objects": len(self.sim.bodies[c].objects),
                                                      "event_mode": self.sim.bodies[c].event_mode}
                                                  for c, d in self.sim.usb_devices.items()}}
 
@@ -112,8 +111,9 @@ class SimRigServer:
         if kind == "board":
             getattr(self.sim.optics, {"place": "place", "clear": "clear"}[msg[1]])(*msg[2])
             return ("ok", None)
-        if kind == "ground_truth":
-            return ("ok", str(write_ground_truth_once(self.sim.optics, Path(msg[1]))))
+        if kind == "ground_truth":  # msg[2]: the client's new-file mode (its umask), not this process's
+            mode = int(msg[2]) if len(msg) > 2 else None
+            return ("ok", str(write_ground_truth_once(self.sim.optics, Path(msg[1]), file_mode=mode)))
         if kind == "status":
             return ("ok", self._status())
         if kind == "stop":
@@ -126,8 +126,11 @@ class SimRigServer:
             while not self.stopped.is_set():
                 try:
                     msg = conn.recv()
-                except (EOFError, OSError):
-                    return  # the client is gone (exited, killed): the bodies keep their state
+                except Exception:  # noqa: BLE001 - gone (EOF) or half a message from a client interrupted mid-send
+                    return  # the bodies keep their state; the client reconnects
+                seq = None
+                if msg and msg[0] == "call":  # ("call", seq, request): the reply echoes seq (sim/remote.py)
+                    seq, msg = msg[1], msg[2]
                 with self.lock:
                     try:
                         reply = self.handle(msg)
@@ -136,7 +139,7 @@ class SimRigServer:
                         reply = ("error", f"{type(exc).__name__}: {exc}")
                 if reply is not None:
                     try:
-                        conn.send(reply)
+                        conn.send(reply if seq is None else (seq, reply))
                     except OSError:
                         return
 

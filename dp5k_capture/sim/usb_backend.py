@@ -55,7 +55,7 @@ class SimUsbBackend(usb.backend.IBackend):
                                extra_descriptors=[])
 
     def open_device(self, dev: SimUsbPtpDevice) -> SimUsbPtpDevice:
-        dev._check_present()
+        dev.open()  # EACCES without permission on the device node (no udev rule)
         return dev
 
     def close_device(self, dev_handle: SimUsbPtpDevice) -> None:
@@ -71,7 +71,7 @@ class SimUsbBackend(usb.backend.IBackend):
         pass
 
     def claim_interface(self, dev_handle: SimUsbPtpDevice, intf: int) -> None:
-        dev_handle._check_present()
+        dev_handle.claim()  # EBUSY while another process holds the interface
 
     def release_interface(self, dev_handle: SimUsbPtpDevice, intf: int) -> None:
         pass
@@ -83,12 +83,12 @@ class SimUsbBackend(usb.backend.IBackend):
         return dev_handle.bulk_out(bytes(data))
 
     def bulk_read(self, dev_handle: SimUsbPtpDevice, ep: int, intf: int, buff: array.array, timeout: int) -> int:
-        chunk = dev_handle.bulk_in(len(buff) * buff.itemsize)
+        chunk = dev_handle.bulk_in(len(buff) * buff.itemsize, timeout)
         memoryview(buff).cast("B")[: len(chunk)] = chunk
         return len(chunk)
 
     def intr_read(self, dev_handle: SimUsbPtpDevice, ep: int, intf: int, buff: array.array, timeout: int) -> int:
-        chunk = dev_handle.interrupt_in(len(buff))
+        chunk = dev_handle.interrupt_in(len(buff), timeout)
         memoryview(buff).cast("B")[: len(chunk)] = chunk
         return len(chunk)
 

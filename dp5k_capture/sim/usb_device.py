@@ -6,12 +6,21 @@ answers the Still Image class requests and string descriptors, and injects USB f
 disconnect after N bytes of bulk IN, stalls, DeviceBusy storms (via the body), short, garbled and
 malformed containers. Like a real body, it keeps what it was sending when its client dies: a new client
 first reads that stale half-sent data phase, until a Cancel (0x64) or Device Reset (0x66) clears it.
+
+Errors carry libusb's error codes as pyusb's libusb1 backend raises them (``errno`` and
+``backend_error_code``): no permission on the device node (``access_denied``: EACCES, -3, as without a udev
+rule), an interface claimed by another process (``held_by``: EBUSY, -6, as while gvfs or gphoto2 holds
+the body), a disconnect (ENODEV, -4), a stall (EPIPE, -9). With ``blocking``, a bulk-IN read that has nothing
+to return waits out its timeout with SIGINT held back, as libusb's synchronous transfer does (it retries
+its poll on EINTR), so a Ctrl-C is seen only when the read returns.
 """
 
 from __future__ import annotations
 
 import errno
+import signal
 import struct
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -23,6 +32,9 @@ from .eos_body import DATA_OUT_OPS, SimulatedEOS
 from .fault_spec import BodyFaultPlan
 
 EP_IN, EP_OUT, EP_INT = 0x81, 0x02, 0x83
+# errno -> libusb error code (libusb.h), as pyusb's libusb1 backend pairs them in USBError
+LIBUSB_CODES = {errno.EIO: -1, errno.EACCES: -3, errno.ENODEV: -4, errno.EBUSY: -6, errno.ETIMEDOUT: -7,
+                errno.EOVERFLOW: -8, errno.EPIPE: -9}
 
 
 @dataclass
@@ -54,7 +66,7 @@ class SimUsbPtpDevice:
     """One simulated USB PTP device (VID/PID of a 5D Mark IV by default) around a PTP core."""
 
     def __init__(self, core: SimulatedEOS, *, vid: int = CANON_VID, pid: int = EOS_5D_MARK_IV_PID,
-                 bus: int = 1, address: int = 10, max_packet: int = 512) -> None:
+                 bus: int = 1, address: int = 10, max_packet: int = 512, blocking: bool = False) -> None:
         self.core = core
         self.vid, self.pid, self.bus, self.address = vid, pid, bus, address
         self.max_packet = max_packet
@@ -70,14 +82,47 @@ class SimUsbPtpDevice:
         self.plan = BodyFaultPlan()
         self.downloads = 0  # raw files started (GetObject, or GetPartialObject at offset 0)
         self.hang_after_in_bytes: int | None = None
+        self.blocking = blocking
+        self.access_denied = False  # the device node is not ours (no udev rule): opening it fails (EACCES)
+        self.held_by: str | None = None  # another process has claimed the PTP interface: claiming fails (EBUSY)
 
     # ------------------------------------------------------------------ faults
     def _usb_error(self, code: int, text: str) -> usb.core.USBError:
-        return usb.core.USBError(text, None, code)
+        return usb.core.USBError(text, LIBUSB_CODES.get(code), code)
 
     def _check_present(self) -> None:
         if self.gone:
             raise self._usb_error(errno.ENODEV, "No such device (it may have been disconnected)")
+
+    def open(self) -> None:
+        """libusb_open: needs read-write access to the device node."""
+        self._check_present()
+        if self.access_denied:
+            raise self._usb_error(errno.EACCES, "Access denied (insufficient permissions)")
+
+    def claim(self) -> None:
+        """libusb_claim_interface: fails while another process holds the interface."""
+        self.open()
+        if self.held_by is not None:
+            raise self._usb_error(errno.EBUSY, "Resource busy")
+
+    def arm(self, plan: BodyFaultPlan) -> None:
+        """Arm a ``--sim-faults`` plan: download faults count from now, ``full@K`` from the next release."""
+        self.plan, self.downloads = plan, 0
+        self.core.faults.busy_rate = plan.busy_rate
+        self.core.faults.full_from_release = None if plan.full_at_release is None else self.core.releases + plan.full_at_release
+        self.access_denied = plan.denied
+        self.held_by = "another process" if plan.held else None
+
+    def _block(self, timeout_ms: int | None) -> None:
+        """Wait out a read's timeout like libusb's synchronous transfer: SIGINT is held back until it returns."""
+        if not self.blocking or not timeout_ms:
+            return
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            time.sleep(timeout_ms / 1000.0)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
     # ------------------------------------------------------------------ bulk
     def bulk_out(self, data: bytes) -> int:
@@ -146,7 +191,8 @@ class SimUsbPtpDevice:
         body = struct.pack(f"<{len(params)}I", *params)
         self._in.append(bytearray(HEADER.pack(HEADER_LEN + len(body), ContainerType.RESPONSE, code, tid) + body))
 
-    def bulk_in(self, size: int) -> bytes:
+    def bulk_in(self, size: int, timeout_ms: int | None = None) -> bytes:
+        """One bulk-IN transfer of at most ``size`` bytes; ``timeout_ms`` matters only in blocking mode."""
         self._check_present()
         if self.faults.stall_in > 0 or self.halted:
             if self.faults.stall_in > 0:
@@ -155,7 +201,8 @@ class SimUsbPtpDevice:
             self.halted = True
             raise self._usb_error(errno.EPIPE, "Pipe error")
         if not self._in:
-            raise usb.core.USBTimeoutError("Operation timed out", None, errno.ETIMEDOUT)
+            self._block(timeout_ms)
+            raise usb.core.USBTimeoutError("Operation timed out", LIBUSB_CODES[errno.ETIMEDOUT], errno.ETIMEDOUT)
         cur = self._in[0]
         if self.faults.garble_next_in:
             self.faults.garble_next_in = False
@@ -173,6 +220,9 @@ class SimUsbPtpDevice:
         if self.hang_after_in_bytes is not None:
             left = self.hang_after_in_bytes - self.in_bytes
             if left <= 0:
+                if self.blocking:  # in-process: the read waits out its timeout, the body never sends the rest
+                    self._block(timeout_ms)
+                    raise usb.core.USBTimeoutError("Operation timed out", LIBUSB_CODES[errno.ETIMEDOUT], errno.ETIMEDOUT)
                 self.hang_after_in_bytes = None
                 raise SimHang(f"{self.core.serial}: hanging in download {self.downloads}")
             n = min(n, left)
@@ -189,9 +239,10 @@ class SimUsbPtpDevice:
         self.in_bytes += n
         return out
 
-    def interrupt_in(self, size: int) -> bytes:
+    def interrupt_in(self, size: int, timeout_ms: int | None = None) -> bytes:
         self._check_present()
-        raise usb.core.USBTimeoutError("Operation timed out", None, errno.ETIMEDOUT)
+        self._block(timeout_ms)
+        raise usb.core.USBTimeoutError("Operation timed out", LIBUSB_CODES[errno.ETIMEDOUT], errno.ETIMEDOUT)
 
     # ------------------------------------------------------------------ control
     def control(self, req_type: int, req: int, value: int, index: int, data: bytes | int) -> bytes | int:

@@ -64,27 +64,47 @@ def _write_single_frame_dng(path: Path, main: NDArray[np.uint16], black: int, wh
 
 
 class FlatOptics:
-    """A tiny world: a textured, slightly tilted plane 1.2-1.6 m away, lit by ambient light and the
-    projector. The aux (left photodiode) frame is half the main frame shifted by a defocus disparity.
+    """A tiny world: a textured plane 1.397-1.403 m away (tilted along x), lit by ambient light and the projector,
+    seen through an 85 mm lens by a W x H crop of a 5D Mark IV sensor (5.36 um pixels), so a focus change of a
+    fraction of a percent shows as it would on the real body.
+
+    Defocus follows Eq. 6 (docs/conventions.md): the signed blur-circle diameter C = f^2 (d - F) / (N d (F - f))
+    (mm on the sensor, C > 0 behind the focal plane) per column; each DP view is the scene blurred by a Gaussian
+    of sigma = |C| / 4 px (a disc's) and displaced by half the DP disparity 4 C / (3 pi), the right view to +x
+    behind focus. The frames are main = left + right and aux = left. The ChArUco stand-in is a checkerboard
+    patch that lands a few px elsewhere at every placement (a hand-held board is never put back exactly),
+    seeded by ``seed``, ``run`` and the placement count.
 
     Args:
         raw_size_px: (W, H) of the raw frames (even).
         lit_image: returns what the projector throws on the scene (uint8 grey at any size) or None.
+        seed: texture and board-placement seed.
+        run: how many runs of the scene came before this world was made (in-process ``--sim``).
     """
 
+    FOCAL_LENGTH_MM = 85.0
+    PIXEL_PITCH_MM = 0.00536
+    BLUR_LEVELS = 6  # Gaussian blurs blended per column (sigma varies along the tilted plane)
+
     def __init__(self, raw_size_px: tuple[int, int] = (96, 64), lit_image: Callable[[], NDArray[np.uint8] | None] | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, run: int = 0) -> None:
         self.w, self.h = raw_size_px
         self.lit_image = lit_image or (lambda: None)
         rng = np.random.default_rng(seed)
         self.albedo = cv2.resize(rng.uniform(0.2, 0.9, (self.h // 4, self.w // 4)), (self.w, self.h), interpolation=cv2.INTER_LINEAR)
         yy, xx = np.mgrid[0 : self.h, 0 : self.w]
-        self.depth_m = 1.2 + 0.4 * xx / max(self.w - 1, 1)  # (H, W) tilted plane, metres
+        self.depth_m = 1.397 + 0.006 * xx / max(self.w - 1, 1)  # (H, W) slightly tilted plane, metres
+        self.seed, self.run = seed, run
         self.board: int | None = None
+        self.board_offset_px = (0, 0)
+        self.placements = 0
         self.exposures: list[ExposureSettings] = []
 
     def place(self, view: int) -> None:
+        rng = np.random.default_rng([self.seed, self.run, view, self.placements])
+        self.placements += 1
         self.board = view
+        self.board_offset_px = (int(rng.integers(-3, 4)), int(rng.integers(-2, 3)))
 
     def clear(self) -> None:
         self.board = None
@@ -94,6 +114,30 @@ class FlatOptics:
         y = int(np.clip(point_px[1], 0, self.h - 1))
         return float(self.depth_m[y, x])
 
+    def coc_px(self, f_number: float, focus_m: float) -> NDArray[np.float64]:
+        """Signed CoC diameter (raw px) of each column of the plane (W,), Eq. 6."""
+        f, F, d = self.FOCAL_LENGTH_MM, focus_m * 1000.0, self.depth_m[0] * 1000.0
+        return f * f * (d - F) / (f_number * d * (F - f)) / self.PIXEL_PITCH_MM
+
+    def _views(self, scene: NDArray[np.float64], coc_px: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Left and right views (H, W), each carrying half the light, of ``scene`` at per-column CoC ``coc_px``."""
+        sigma = np.abs(coc_px) / 4.0
+        levels = np.linspace(0.0, max(float(sigma.max()), 1e-6), self.BLUR_LEVELS)
+        stack = np.stack([scene if s == 0 else cv2.GaussianBlur(scene, (0, 0), s, borderType=cv2.BORDER_REFLECT) for s in levels])
+        t = np.clip(sigma / levels[1], 0, self.BLUR_LEVELS - 1 - 1e-9)
+        i0 = np.floor(t).astype(int)
+        w = t - i0
+        cols = np.arange(self.w)
+        blurred = stack[i0, :, cols].T * (1 - w) + stack[i0 + 1, :, cols].T * w  # (H, W)
+        half_disp = (2.0 / (3.0 * np.pi)) * coc_px  # half of 4 C / (3 pi), px
+        xx, yy = np.meshgrid(np.arange(self.w, dtype=np.float32), np.arange(self.h, dtype=np.float32))
+        src = blurred.astype(np.float32)
+
+        def moved(dx: NDArray[np.float64]) -> NDArray[np.float64]:  # content displaced by dx (px) along x
+            return cv2.remap(src, xx - dx[None, :].astype(np.float32), yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(np.float64)
+
+        return 0.5 * moved(-half_disp), 0.5 * moved(half_disp)
+
     def expose(self, s: ExposureSettings) -> bytes:
         self.exposures.append(s)
         light = np.full((self.h, self.w), 0.3)
@@ -102,18 +146,21 @@ class FlatOptics:
             light = light + cv2.resize(lit.astype(np.float64) / 255.0, (self.w, self.h), interpolation=cv2.INTER_NEAREST)
         scene = self.albedo * light
         if self.board is not None:  # a checkerboard patch standing in for the ChArUco board
-            y0, x0, bh, bw = self.h // 4, self.w // 4 + 4 * self.board, self.h // 2, self.w // 3
+            ox, oy = self.board_offset_px
+            y0, x0, bh, bw = max(self.h // 4 + oy, 0), max(self.w // 4 + 4 * self.board + ox, 0), self.h // 2, self.w // 3
             yy, xx = np.indices((bh, bw))
-            scene[y0 : y0 + bh, x0 : x0 + bw] = ((yy // 4 + xx // 4) % 2).astype(np.float64)
+            patch = ((yy // 4 + xx // 4) % 2).astype(np.float64)
+            region = scene[y0 : y0 + bh, x0 : x0 + bw]
+            region[...] = patch[: region.shape[0], : region.shape[1]]
         gain = s.shutter_s * s.iso / 100.0 / s.f_number**2 * 2000.0
         black, white = 512, 16383
-        main = np.clip(black + scene * gain * (white - black), 0, white).astype(np.uint16)
-        focus = s.focus_distance_m or 1.4
-        shift = int(np.clip(round(8.0 / s.f_number * (1.0 - focus / float(self.depth_m.mean()))), -3, 3))
-        aux_lin = np.roll((main.astype(np.float64) - black) / 2.0, shift, axis=1)
-        aux = np.clip(black + aux_lin, 0, white).astype(np.uint16)
+        focus = s.focus_distance_m or float(self.depth_m.mean())
+        left, right = self._views(scene * gain * (white - black), self.coc_px(s.f_number, focus))
+        main = np.clip(black + left + right, 0, white).astype(np.uint16)
+        aux = np.clip(black + left, 0, white).astype(np.uint16)
         meta = {"serial": s.serial, "f_number": s.f_number, "shutter_s": s.shutter_s, "iso": s.iso,
-                "focus_distance_m": s.focus_distance_m, "sequence": s.sequence}
+                "focus_distance_m": s.focus_distance_m, "sequence": s.sequence,
+                **({"board": {"view": self.board, "placement": self.placements}} if self.board is not None else {})}
         return dng_bytes(main, aux if s.dual_pixel_raw else None, black, white, (2.0, 1.0, 1.5), meta)
 
     def write_ground_truth(self, folder: Path) -> list[Path]:
@@ -146,10 +193,11 @@ class StudioOptics:
         projector: the simulated projector (its lit image lights the scene).
         scale: studio rig scale (``"small"``, or a sensor downscale factor; larger = smaller images).
         seed: rig / noise seed.
+        run: how many runs of the scene came before this world was made (in-process ``--sim``: board placements differ).
     """
 
     def __init__(self, scene: str | int, projector: SimulatedEBU42, scale: float | str = 60, seed: int = 0,
-                 effects: Any = None) -> None:
+                 effects: Any = None, run: int = 0) -> None:
         from dp5k_studio import Studio, make_rig, make_scene
 
         from dp5k_studio import plane_scene
@@ -167,7 +215,9 @@ class StudioOptics:
             self.scene_studio.set_board_pose(wall_board_pose(self.scene_studio.scene, WALL_BOARD.size_m), WALL_BOARD)
         self._active = self.scene_studio
         self.projector = projector
-        self.seed = seed
+        self.seed, self.run = seed, run
+        self.placements: dict[int, int] = {}
+        self.board_view: tuple[int, int] | None = None  # (view, placement) while the board is held
         cams = self.srig.cameras
         self.serials = [c.serial for c in cams]
         self.raw_sizes_px = [(c.width, c.height) for c in cams]
@@ -256,15 +306,27 @@ class StudioOptics:
         return R, t
 
     def place(self, view: int) -> None:
-        """Hold the board in pose ``view``: the following exposures are the calibration shots."""
+        """Hold the board in pose ``view``: the following exposures are the calibration shots.
+
+        A hand-held board is never put back exactly: every placement of a view after its first in this world
+        (and every placement in a later in-process run) is off the nominal pose by up to 2 cm and 1.5 degrees,
+        seeded by seed, run, view and the placement count."""
         R, t = self.board_pose(view)
+        n = self.placements.get(view, 0)
+        self.placements[view] = n + 1
+        if n > 0 or self.run > 0:
+            rng = np.random.default_rng([self.seed, self.run, view, n])
+            R = cv2.Rodrigues(np.radians(rng.uniform(-1.5, 1.5, 3)))[0] @ R
+            t = t + rng.uniform(-0.02, 0.02, 3)
         self.board_poses[view] = (R.tolist(), t.tolist())
+        self.board_view = (view, n + 1)
         self.calib_studio.set_board_pose((R, t))
         self._active = self.calib_studio
         self._shown = b"unset"
 
     def clear(self) -> None:
         """Board away: the following exposures show the scene again."""
+        self.board_view = None
         self.calib_studio.set_board_pose(None)
         self._active = self.scene_studio
         self._shown = b"unset"
@@ -281,7 +343,10 @@ class StudioOptics:
         focus = s.focus_distance_m if s.focus_distance_m is not None else self.studio.focus_distance_m(i, self.focus_points_px[i])
         rng = np.random.default_rng([self.seed, i, s.sequence])
         raw = studio.expose(i, s.f_number, focus, s.shutter_s, s.iso, rng)
-        meta = {**raw.metadata, "sequence": s.sequence}
+        if studio is self.scene_studio:
+            self.focus_m[i] = float(focus)  # the focus of the scene's frames (an AF after this run's first moves it)
+        meta = {**raw.metadata, "sequence": s.sequence,
+                **({"board": {"view": self.board_view[0], "placement": self.board_view[1]}} if self.board_view else {})}
         return dng_bytes(raw.main, raw.aux if s.dual_pixel_raw else None, raw.black_level, raw.white_level, raw.wb_gains, meta)
 
     def write_ground_truth(self, folder: Path) -> list[Path]:
@@ -369,11 +434,13 @@ def sim_studio_scene(scene: str) -> str | int:
     return zlib.crc32(scene.encode()) % 100000
 
 
-def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
+def write_ground_truth_once(optics: Any, session_dir: Path, file_mode: int | None = None) -> Path:
     """``session_dir/ground_truth/`` from the simulated world, as one atomic folder rename (kept if present).
 
     Written into a hidden temporary folder beside it and renamed, so an interruption leaves either no
     ``ground_truth/`` or a whole one; leftovers of an interrupted write are removed on the next call.
+    ``file_mode`` is the mode new files get under the capture client's umask (a sim-rig server writes for a
+    client with another umask); default: this process's.
     """
     final = Path(session_dir) / "ground_truth"
     for stale in Path(session_dir).glob(f".{GROUND_TRUTH_TMP_PREFIX}*"):
@@ -383,7 +450,7 @@ def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{GROUND_TRUTH_TMP_PREFIX}", dir=session_dir))
     try:
         optics.write_ground_truth(tmp)
-        mode = new_file_mode()
+        mode = new_file_mode() if file_mode is None else file_mode & 0o666
         for path in tmp.iterdir():
             os.chmod(path, mode)
         os.chmod(tmp, mode | (mode & 0o444) >> 2)  # a folder: x wherever r (0o755 under umask 022)
@@ -395,11 +462,14 @@ def write_ground_truth_once(optics: Any, session_dir: Path) -> Path:
 
 def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[SimulatedEBU42, PatternWindow | None], Any] | None = None,
                  raw_size_px: tuple[int, int] = (96, 64), warmup_s: float = 0.2, seed: int = 0, faults: str = "",
-                 hdmi: Callable[[], NDArray[np.uint8]] | None = None) -> SimRig:
+                 hdmi: Callable[[], NDArray[np.uint8]] | None = None, run: int = 0, blocking: bool = False) -> SimRig:
     """Build the simulated rig. ``optics_factory(projector, window)`` makes the world (default :class:`FlatOptics`).
 
     ``faults`` is a ``--sim-faults`` text (:mod:`dp5k_capture.sim.fault_spec`). ``hdmi`` is the projector's
     HDMI input when the pattern window lives in another process (a sim-rig server); then ``window`` is None.
+    ``run`` counts the runs of this scene before this one (new bodies each in-process run: their lenses sit
+    where an earlier run's AF left them, see :mod:`~dp5k_capture.sim.eos_body`). ``blocking``: bulk-IN reads
+    with nothing to return wait out their timeout (as libusb does).
     """
     base = base or RigConfig()
     p = base.projector
@@ -407,7 +477,7 @@ def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[Sim
     projector = SimulatedEBU42(warmup_s=warmup_s, hdmi=hdmi if window is None else window.frame)
     port = projector.serve_pty()
     if optics_factory is None:
-        optics: Any = FlatOptics(raw_size_px, projector.lit_image, seed)
+        optics: Any = FlatOptics(raw_size_px, projector.lit_image, seed, run)
         sizes = [raw_size_px, raw_size_px]
     else:
         optics = optics_factory(projector, window)
@@ -423,12 +493,11 @@ def make_sim_rig(base: RigConfig | None = None, *, optics_factory: Callable[[Sim
     rig = replace(base, bodies=bodies_cfg, projector=replace(p, port=port))
     bodies, devs = {}, {}
     for i, b in enumerate(rig.bodies):
-        core = SimulatedEOS(b.serial, optics, faults=BodyFaults())
+        core = SimulatedEOS(b.serial, optics, faults=BodyFaults(), af_seed=seed, run=run, lens_point_px=b.focus_point_px)
         bodies[b.id] = core
-        devs[b.id] = SimUsbPtpDevice(core, address=10 + i)
+        devs[b.id] = SimUsbPtpDevice(core, address=10 + i, blocking=blocking)
     for cam_id, plan in parse_sim_faults(faults, tuple(devs)).items():
-        devs[cam_id].plan = plan
-        bodies[cam_id].faults.busy_rate = plan.busy_rate
+        devs[cam_id].arm(plan)
     backend = SimUsbBackend(list(devs.values()))
     return SimRig(rig, backend, bodies, devs, projector, window, optics)
 

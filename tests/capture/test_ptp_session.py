@@ -29,8 +29,8 @@ def test_standard_operations(body: Body) -> None:
     assert s.get_storage_ids() == [0x00010001]
     assert s.get_storage_info(0x00010001).label == "EOS_DIGITAL"
     desc = s.get_device_prop_desc(0x5001)
-    assert (desc.current, desc.form, desc.values) == (80, 1, [0, 100, 1])
-    assert s.get_device_prop_value(0x5001) == bytes([80])
+    assert (desc.current, desc.form, desc.values) == (75, 1, [0, 100, 1])
+    assert s.get_device_prop_value(0x5001) == bytes([75])
     with pytest.raises(ResponseError) as err:
         s.get_device_prop_desc(0xD101)
     assert err.value.code == Resp.DEVICE_PROP_NOT_SUPPORTED and "body SIM0001" in str(err.value)

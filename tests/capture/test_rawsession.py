@@ -162,3 +162,30 @@ def test_files_follow_the_umask_and_stale_temporaries_go(tmp_path: Path) -> None
     RawSessionWriter(tmp_path, "s1", rig, "dng")
     assert sorted(p.name for p in (tmp_path / "s1").rglob(".*")) == []
     assert (tmp_path / "s1/cam0/charuco_0.dng").read_bytes() == b"raw bytes"
+
+
+def test_a_quarantine_move_cut_off_by_a_kill_is_completed_on_reopen(tmp_path: Path) -> None:
+    """The manifest records a move before the rename: a kill in between leaves the file in place but no longer
+    listed; reopening finishes the move instead of adopting the set-aside file as a fresh capture."""
+    w, rig = _writer(tmp_path)
+    shot = plan_scene(rig)[3]
+    w.add("cam0", shot, b"old focus", {})
+
+    def killed(src: Path, dest: Path) -> None:
+        raise KeyboardInterrupt
+
+    w._move = killed  # type: ignore[method-assign]
+    with pytest.raises(KeyboardInterrupt):
+        w.quarantine("cam0/dp_f1.8.dng", "focus moved")
+    assert (tmp_path / "s1/cam0/dp_f1.8.dng").is_file()  # still in place after the kill
+    w2 = RawSessionWriter(tmp_path, "s1", rig, "dng")
+    assert not (tmp_path / "s1/cam0/dp_f1.8.dng").exists() and not w2.done("cam0", shot)
+    assert (tmp_path / "s1/quarantine/run1/cam0/dp_f1.8.dng").read_bytes() == b"old focus"
+    assert w2.run == 2 and [r["run"] for r in w2.manifest["runs"]] == [1, 2]
+    w2.add("cam0", shot, b"new focus", {})  # the re-shot file takes its place; the old one stays set aside
+    assert (tmp_path / "s1/cam0/dp_f1.8.dng").read_bytes() == b"new focus"
+    report = verify_session(tmp_path / "s1", check_dual_pixel=False)
+    assert not [p for p in report.problems if "quarantine" in p]
+    (tmp_path / "s1/quarantine/run1/cam0/dp_f1.8.dng").write_bytes(b"tampered")
+    report = verify_session(tmp_path / "s1", check_dual_pixel=False)
+    assert "quarantine/run1/cam0/dp_f1.8.dng: changed since it was set aside (size or SHA-256)" in report.problems

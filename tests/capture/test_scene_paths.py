@@ -55,11 +55,13 @@ def test_unwritable_out_is_refused_before_any_device(tmp_path: Path, dry_run: bo
     rig = _rig(tmp_path)
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    for out, why in ((Path("/proc/dp5k-raw"), "cannot write into /proc"), (a_file / "raw", "is a file")):
+    for out, why in ((Path("/proc/dp5k-raw"), "cannot write into /proc"), (a_file / "raw", "is a file"),
+                     (a_file, f"not a folder ({a_file} is a file)")):  # --out itself a file: ours, not click's usage error
         res = CliRunner().invoke(main, ["capture", "--scene", "s1", "--out", str(out), "--rig", str(rig),
                                         *(["--dry-run"] if dry_run else [])])
         assert res.exit_code == 3, res.output  # a device touched first would exit 5 (no such serial port)
         assert why in res.output and "ttyUSB9" not in res.output and len(res.output.strip().splitlines()) == 1
+        assert res.output.startswith("dp5k: error: ") and "Usage:" not in res.output
     assert not Path("/proc/dp5k-raw").exists()
 
 

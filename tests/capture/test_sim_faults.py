@@ -25,12 +25,13 @@ IDS = ("cam0", "cam1")
 
 
 def test_spec_parses_per_body_and_for_all_bodies() -> None:
-    plans = parse_sim_faults("disconnect@37, busy=0.1,cam1.hang@5", IDS)
-    assert plans["cam0"] == BodyFaultPlan(disconnect_at_download=37, busy_rate=0.1)
-    assert plans["cam1"] == BodyFaultPlan(disconnect_at_download=37, hang_at_download=5, busy_rate=0.1)
+    plans = parse_sim_faults("disconnect@37, busy=0.1,cam1.hang@5,cam1.denied,cam0.held,cam0.full@3", IDS)
+    assert plans["cam0"] == BodyFaultPlan(disconnect_at_download=37, busy_rate=0.1, held=True, full_at_release=3)
+    assert plans["cam1"] == BodyFaultPlan(disconnect_at_download=37, hang_at_download=5, busy_rate=0.1, denied=True)
     assert parse_sim_faults("", IDS) == {"cam0": BodyFaultPlan(), "cam1": BodyFaultPlan()}
     for bad, why in (("explode@3", "use disconnect@K"), ("disconnect@0", "K >= 1"), ("busy=1.5", "0..1"),
-                     ("cam7.stall@2", "no body 'cam7'"), ("disconnect", "NAME@K")):
+                     ("cam7.stall@2", "no body 'cam7'"), ("disconnect", "NAME@K"), ("denied@2", "denied or held"),
+                     ("full", "NAME@K"), ("full=0.5", "full@K")):
         with pytest.raises(BadInputError, match=why):
             parse_sim_faults(bad, IDS)
 

@@ -95,6 +95,12 @@ def _resume_and_check(sock: Path, out: Path, kept: dict[str, str]) -> None:
     after = _hashes(out / "s1")
     assert {p: after[p] for p in kept} == kept  # no completed file changed
     assert (out / "s1/ground_truth/truth.json").is_file()
+    # the raw whose download was cut off waited in cam1's buffer: rescued into quarantine and released, so nothing
+    # piles up on the body (a clean scene leaves 0 images there)
+    assert {c: b["objects"] for c, b in _status(sock)["bodies"].items()} == {"cam0": 0, "cam1": 0}
+    m = json.loads((out / "s1/manifest.json").read_text())
+    assert [(q["camera"], q["kind"]) for q in m["quarantined"]] == [("cam1", "leftover")]
+    assert [c["verdict"] for c in (m["focus"]["cam0"]["checks"][-1], m["focus"]["cam1"]["checks"][-1])] == ["kept", "kept"]
 
 
 @pytest.mark.slow

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,11 @@ def sdirt_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_sdirt_import_tiles_into_valid_pairs(sdirt_dataset: Path) -> None:
     r = DatasetReader(sdirt_dataset)
     assert len(r) == 2 * 16  # two distances, 4 x 4 tiles of 192 x 128 from 768 x 512
-    assert all(r.ids(s) for s in ("train", "val", "test"))
+    # split by photo, not by tile: one target is train, the other test, val is empty (and the report says why)
+    assert len(r.ids("train")) == len(r.ids("test")) == 16 and not r.ids("val")
+    for split in ("train", "test"):
+        assert len({r.params(pid).source_id for pid in r.ids(split)}) == 1
+    assert "only two source captures" in json.loads((sdirt_dataset / "report.json").read_text())["split_note"]
     p = r.load(r.ids("test")[0])
     assert p.params.image_size == (192, 128)
     assert p.params.extra["full_image_size"] == [768, 512]
