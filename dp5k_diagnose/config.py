@@ -66,9 +66,11 @@ class SelectConfig:
             (:meth:`DetectConfig.threshold`) of the fit crops' systematic error, alone or as its unique part of
             the joint step of every effect. A first-order screen; the held-out tests decide.
         full_lm_iters: Levenberg-Marquardt iterations of the full model (every screened effect at once).
-        rescreens: times the effects left out are screened again around the fitted full model (a first-order
-            screen around the base model underrates an effect whose signal another effect's larger error
-            hides, or that acts far from linearly); each that passes joins the full model, which is refitted.
+        rescreens: times the effects left out of the confirmed model are screened again around it (a first-order
+            screen around the base model underrates an effect whose signal another effect's larger error hides,
+            and an effect can be masked by one the elimination later removed); when one passes that the last
+            full model did not hold, the confirmed causes and every passing effect make a new full model, which
+            is eliminated and confirmed in turn.
         refit_lm_iters: iterations of each refit that confirms a selection (the final model, the model
             without each cause, a look-alike swapped in).
         lookalike_corr: effects whose Jacobians' largest canonical correlation on the fit crops (nuisance

@@ -281,6 +281,7 @@ def confirm_on_held_out(selection: Selection, base: BaseModel, before: PairMetri
         log.info("%s is a suspect: its held-out gain given the other causes is %+.3f dB, 95 %% CI [%+.3f, %+.3f]", worst["name"],
                  worst["gain_db"], *worst["gain_ci_db"])
         suspects.append({"name": worst["name"], "params": worst["params"], "gain_db": worst["gain_db"], "gain_ci_db": worst["gain_ci_db"],
+                         "gain_per_pair_db": worst["gain_per_pair_db"],
                          "effect_size": worst["effect_size"], "p_value": worst["p_value"],
                          "why": "the detection pairs chose it, but its PSNR gain on the held-out pairs given the other causes has a 95 % CI "
                                 f"[{worst['gain_ci_db'][0]:+.3f}, {worst['gain_ci_db'][1]:+.3f}] dB that does not lie above 0",
@@ -334,6 +335,7 @@ def cause_entries(selection: Selection, before: PairMetrics, step_metrics: list[
         out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()), "param_intervals": {},
                     "effect_size": f.effect_size, "p_value": f.p_value,
                     "gain_db": _mean(g), "gain_ci_db": [glo, ghi],
+                    "gain_per_pair_db": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, np.broadcast_to(g, before.psnr.shape))},
                     "step_gain_db": _mean(d), "step_gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
                     "explanation": f.explanation})
         prev = pm.psnr

@@ -605,35 +605,39 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
     pool = fit + det_samples  # the screen only proposes; the tests are on the detection pairs alone
     screen = screen_effects(base, comps, pool, noise0, cfg, sel)
     rounds: list[dict[str, Any]] = []
-    trace: dict[str, Any] = {"method": "screen, full model, re-screen, backward elimination on the detection pairs, refitted confirmation",
-                             "screen": screen.to_json(), "rescreens": [], "rounds": rounds}
+    trace: dict[str, Any] = {"method": "screen, full model, backward elimination on the detection pairs, refitted confirmation, "
+                                       "re-screen around the confirmed model", "screen": screen.to_json(), "rescreens": [], "rounds": rounds,
+                             "full_models": []}
     ctx = Context(base, base_ev, base_mse, fit, det, cfg, sel, comps, neutral, screen, base, {}, untestable, structural, "noise" in effects)
-    if not screen.candidates:
-        return finish(ctx, Confirmed([], base, None, base_ev, {}, {}, {}), trace)
-    names = list(screen.candidates)
-    values = screen.values
-    for _ in range(sel.rescreens + 1):
+    conf = Confirmed([], base, None, base_ev, {}, {}, {})
+    names, values = list(screen.candidates), screen.values
+    for k in range(sel.rescreens + 1):
+        if not names:
+            break
         full = with_values(base.replaced(sorted([copy.deepcopy(comps[n]) for n in names], key=lambda c: c.stage)), values)
         lin = refit(full, fit, sel.full_lm_iters)
-        rest = {n: comps[n] for n in comps if n not in names and screen.share.get(n, 0.0) >= 0.0}
-        if not rest or _ == sel.rescreens:
+        trace["full_models"].append(full.describe())
+        ctx.full = full
+        survivor, elim_rounds, removed = eliminate(full, lin, fit, det, neutral, cfg, sel)
+        rounds += elim_rounds
+        ctx.removed.update(removed)
+        survivors = [c.name for c in survivor.components]
+        conf = confirm(base, base_ev, full, survivors, key_values(survivor, targets_of(survivor, fit)), fit, det, neutral, cfg, sel,
+                       ctx.removed, rounds)
+        rest = {n: comps[n] for n in comps if n not in conf.names}
+        if k == sel.rescreens or not rest:
             break
-        again = screen_effects(full, rest, pool, noise0, cfg, sel)
-        trace["rescreens"].append({"model": list(names), **again.to_json()})
+        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel)
+        trace["rescreens"].append({"model": list(conf.names), **again.to_json()})
         for n in rest:
             screen.share[n] = max(screen.share.get(n, 0.0), again.share[n])
-        if not again.candidates:
-            break
-        names += again.candidates
+        if not [n for n in again.candidates if n not in names]:
+            break  # nothing the last full model did not already hold
+        names = conf.names + again.candidates
         values = again.values
-    trace["full_model"] = full.describe()
-    ctx.full = full
-    survivor, elim_rounds, removed = eliminate(full, lin, fit, det, neutral, cfg, sel)
-    rounds += elim_rounds
-    ctx.removed = removed
-    survivors = [c.name for c in survivor.components]
-    values = key_values(survivor, targets_of(survivor, fit))
-    conf = confirm(base, base_ev, full, survivors, values, fit, det, neutral, cfg, sel, removed, rounds)
+    for n in conf.names:
+        ctx.removed.pop(n, None)
+    trace["full_model"] = trace["full_models"][-1] if trace["full_models"] else {"components": {}}
     return finish(ctx, conf, trace)
 
 
@@ -709,8 +713,9 @@ def effect_findings(conf: Confirmed, order: list[str], full: BaseModel, screen: 
                                 f"systematic error (threshold {cfg.threshold(n):g}), p = {t.p_value:.2g}", None, stage="eliminated"))
             continue
         share = screen.share.get(n, 0.0)
-        rest.append(Finding(n, 0.0, 1.0, share, False, {}, f"screened out: one Gauss-Newton step from the base model predicts it removes "
-                            f"{share:.3f} of the fit crops' systematic error (screen {sel.screen_share * cfg.threshold(n):.3f})", None, stage="screened out"))
+        rest.append(Finding(n, 0.0, 1.0, share, False, {}, f"screened out: one Gauss-Newton step predicts it removes at most {share:.3f} of "
+                            f"the systematic error the models it was screened against leave (screen {sel.screen_share * cfg.threshold(n):.3f})",
+                            None, stage="screened out"))
     if noise is not None:
         rest.append(noise)
     rest.sort(key=lambda f: (not f.detected, -f.rank_score))
