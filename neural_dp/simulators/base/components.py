@@ -385,7 +385,7 @@ class Noise(Component):
     """Sensor noise in the views: white, signal dependent, var = shot_var * I + read_sigma^2 (linear units).
 
     A simulator's prediction is the noise-free expectation, so the component leaves the views unchanged;
-    its parameters (estimated from the residual by :func:`dp5k_diagnose.detect.test_noise`) let a
+    its parameters (estimated from the residual by :func:`dp5k_diagnose.noise.test_noise`) let a
     simulator add calibrated noise when it synthesises data.
     """
 

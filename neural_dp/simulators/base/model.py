@@ -97,7 +97,7 @@ class BaseModel(DPSimulator):
             rendering (:func:`sharp_radiance`; 0 treats the sharp frame as a pinhole image).
         pixel_box: how PSFs become pixel weights, 0 (2-px triangle: linear interpolation of the sharp image)
             to 1 (1-px box: pixel-area integration), :class:`PSFShape`; a renderer-discretisation parameter
-            that :func:`dp5k_diagnose.detect.fit_base` fits with the rim softness and the gain.
+            that :func:`dp5k_diagnose.fitting.fit_base` fits with the rim softness and the gain.
     """
 
     name: ClassVar[str] = "base"
