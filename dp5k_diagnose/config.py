@@ -29,6 +29,9 @@ class DetectConfig:
             as ``noise`` (0.5: 1.5 x the nominal variance; clean studio data measures 0.04-0.06).
         systematic_floor: the systematic error is at least this share of the base model's squared error
             (bounds effect sizes where the measured noise explains nearly all of it).
+        remaining_floor: an effect's size is a share of the systematic error the model without it leaves, but
+            of at least this share of the base model's systematic error (what little several effects leave is
+            not a scale to measure a further one on).
         noise_flat_window_px, noise_flat_quantile: the window over which sharp must be flat, and the
             flattest fraction of valid pixels used to measure noise.
         nominal_shot_var, nominal_read_sigma: the noise a healthy sensor is expected to show (linear
@@ -47,6 +50,7 @@ class DetectConfig:
     nominal_shot_var: float = 2.0e-5
     nominal_read_sigma: float = 1.0e-3
     systematic_floor: float = 0.2
+    remaining_floor: float = 0.05
 
     def threshold(self, effect: str) -> float:
         """The effect size ``effect`` must exceed to be detected (share of the systematic error; ``noise``:

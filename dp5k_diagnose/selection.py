@@ -52,7 +52,7 @@ from .data import Sample
 from .findings import GREY_MAX_COLOUR_CONTRAST, Finding, _finite, colour_contrast, explanation, not_testable
 from .fitting import PSF_NUISANCE, covered_field_box
 from .linearize import Linearization, clustered_intervals, get_values, jacobian, lm_fit, set_values
-from .noise import measured_noise, noise_sse, noise_tile_sse, test_noise
+from .noise import measured_noise, noise_sse, noise_tile_sse, systematic_sse, test_noise
 from .tiles import clustered_delta, effect_test, holm_passed, kept_tiles, tile_mse, tile_sums, unit_sums
 
 log = logging.getLogger(__name__)
@@ -256,6 +256,8 @@ class DetSet:
         counts, owners: per kept tile (:func:`tiles.tile_mse`), its scored entries and pair id.
         floor: the systematic error is at least this share of a model's squared error
             (:attr:`DetectConfig.systematic_floor`).
+        base_systematic: the base model's systematic error times :attr:`DetectConfig.remaining_floor`: the
+            least a systematic error counts as.
         noise: per kept tile, the measured white noise's squared error.
     """
 
@@ -265,6 +267,7 @@ class DetSet:
     owners: np.ndarray
     floor: float
     noise: np.ndarray
+    base_systematic: float = 0.0
 
     def eval(self, model: BaseModel) -> Eval:
         sums, preds = [], []
@@ -291,27 +294,30 @@ class DetSet:
     def test(self, effect: str, without: Eval, with_: Eval) -> Test:
         """``effect``'s test: the model without it against the model with it (:func:`informed_test`)."""
         return informed_test(effect, without.su, with_.su, self.difference(without, with_), self.noise, self.counts, self.owners,
-                             self.floor)
+                             self.floor, self.base_systematic)
 
 
 def informed_test(effect: str, without_su: np.ndarray, with_su: np.ndarray, diff: np.ndarray, noise: np.ndarray, counts: np.ndarray,
-                  owners: np.ndarray, floor: float = 0.2) -> Test:
+                  owners: np.ndarray, floor: float = 0.2, least: float = 0.0) -> Test:
     r"""The signed-rank test of the per-pair log ratios :math:`\ln(\mathrm{SSE}(without) / \mathrm{SSE}(with))`
     over the informative pairs (:data:`INFORMATIVE_SHARE`: ``diff``, the two predictions' summed squared
     difference, against ``noise``, the noise energy; all per kept tile), and the effect size: the squared error
     the effect removes as a share of the systematic error of the model without it,
-    :math:`\max(\mathrm{SSE}(without) - \mathrm{SSE}(noise), \text{floor} \cdot \mathrm{SSE}(without))`.
+    :math:`\max(\mathrm{SSE}(without) - \mathrm{SSE}(noise), \text{floor} \cdot \mathrm{SSE}(without), \text{least})`.
 
     That denominator is what no other effect of the model explains: a weak effect beside a strong one is
     judged on what is left once the strong one is in (as a share of the base model's error, a planted
     field-varying PSF beside a strong L/R gain ramp removed 0.007, significant at p = 1e-4, but 0.083 of what
     the ramp left), while an effect that only absorbs model mismatch is judged on that mismatch alone
-    whatever else the data holds."""
+    whatever else the data holds. ``least`` (a share of the base model's systematic error,
+    :attr:`DetectConfig.remaining_floor`) keeps crumbs crumbs: where the other effects leave almost nothing (on
+    noise-free data rendered by the base model itself with an L/R gain planted, the gain model left 1e-3 of
+    the base model's error, and a bright rim fitted into that numerical remainder took half of it)."""
     delta = clustered_delta(without_su, with_su, counts, owners)
     informative = unit_sums(diff, owners) >= INFORMATIVE_SHARE * unit_sums(noise, owners)
     t, p = effect_test(delta[informative])
     total = float(without_su.sum())
-    systematic = max(total - float(noise.sum()), floor * total)
+    systematic = max(total - float(noise.sum()), floor * total, least)
     return Test(effect, t, p, float((total - with_su.sum()) / max(systematic, 1e-20)))
 
 
@@ -594,6 +600,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
     det = DetSet(det_samples, cfg.tile_px, base_co, owners, cfg.systematic_floor,
                  noise_tile_sse(det_samples, *measured_noise(noise0, cfg), cfg.tile_px))
     base_ev = det.eval(base)
+    det.base_systematic = cfg.remaining_floor * systematic_sse(base_total, det_samples, noise0, cfg)
     structural = [e for e in effects if e != "noise"]
     untestable: dict[str, Finding] = {}
     if any(COMPONENTS[e].needs_colour for e in structural):

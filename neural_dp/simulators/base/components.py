@@ -8,7 +8,7 @@ ones; field coordinates ``x, y`` are in [-1, 1], ``r^2 = (x^2 + y^2) / 2`` (corn
 ===================== ================================================================================
 effect                model change (parameters)
 ===================== ================================================================================
-lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2; left x 2 rho/(1+rho),
+lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2 + axy x y; left x 2 rho/(1+rho),
                       right x 2/(1+rho) (``lr_ratio_center`` = exp(a0))
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
                       receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right
@@ -17,8 +17,10 @@ chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
                       ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one), in
                       [-0.5, 1]: crosstalk >= 0 only shrinks it; < 0 means swapped views
-focus_offset          CoC recomputed (Eq. 6) at focus distance ``focus_factor`` x F (``focus_offset_mm`` reported)
-psf_profile           radial weight 1 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright centre)
+focus_offset          CoC recomputed (Eq. 6) at focus distance F' with 1/F' = 1/(``focus_factor`` F) - ``focus_shift_dpt``
+                      (a relative error and one in dioptres; ``focus_offset_mm`` reported)
+psf_profile           radial weight 1 + ``rim_gain2`` (rho/R)^2 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright
+                      centre; a ring near the rim, a quadratic or a quartic rim)
 front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
                       (1 - (rho/R)^2) and diameter x ``front_size_factor``
 misregistration       each view shifted by (``left_dx_px``, ``left_dy_px``), (``right_dx_px``, ``right_dy_px``)
@@ -49,7 +51,7 @@ class LRGainImbalance(Component):
     name = "lr_gain_imbalance"
     post_only = True
     stage = 1
-    KEYS = ("a0", "ax", "ay", "axx", "ayy")
+    KEYS = ("a0", "ax", "ay", "axx", "ayy", "axy")
 
     def __init__(self) -> None:
         super().__init__()
@@ -59,10 +61,11 @@ class LRGainImbalance(Component):
         self.steps = {k: 0.01 for k in self.KEYS}
 
     def log_ratio(self, field: Tensor) -> Tensor:
-        """(B, 1, H, W) ln(L/R gain ratio) at field coordinates (B, 2, H, W)."""
+        """(B, 1, H, W) ln(L/R gain ratio) at field coordinates (B, 2, H, W): every quadratic in x and y (a
+        renderer's or a sensor's ramp may tilt along any direction and curve along either axis)."""
         x, y = field[:, :1], field[:, 1:2]
         p = self.params
-        return p["a0"] + p["ax"] * x + p["ay"] * y + p["axx"] * x * x + p["ayy"] * y * y
+        return p["a0"] + p["ax"] * x + p["ay"] * y + p["axx"] * x * x + p["ayy"] * y * y + p.get("axy", 0.0) * x * y
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
         rho = torch.exp(self.log_ratio(field))
@@ -185,10 +188,14 @@ MIN_FOCUS_OVER_FOCAL = 1.05
 
 
 class FocusOffset(Component):
-    """The lens focuses at ``F_true = focus_factor x F_recorded`` (Eq. 6 recomputed at F_true).
+    """The lens focuses at :math:`F'` with :math:`1/F' = 1/(k F) - \\delta` instead of the recorded :math:`F` (Eq. 6
+    recomputed at :math:`F'`).
 
-    A relative error, as an autofocus or focus-by-wire error that scales with the distance; the report also
-    gives it in mm at the mean recorded focus distance of the fit data.
+    Two forms of focus error: ``focus_factor`` k, a relative one (a focus-by-wire error that scales with the
+    distance), and ``focus_shift_dpt`` delta, one in dioptres (1/m: a sensor or autofocus offset in image
+    space, the same blur at every distance). Pairs focused at one distance cannot tell them apart (their
+    intervals then say so); pairs at several distances can. The report also gives the offset in mm at the mean
+    recorded focus distance of the fit data.
     """
 
     name = "focus_offset"
@@ -196,18 +203,27 @@ class FocusOffset(Component):
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"focus_factor": 1.0}
-        self.fit_names = ["focus_factor"]
-        self.bounds = {"focus_factor": (0.5, 2.0)}
-        self.steps = {"focus_factor": 0.01}
+        self.params = {"focus_factor": 1.0, "focus_shift_dpt": 0.0}
+        self.fit_names = ["focus_factor", "focus_shift_dpt"]
+        self.bounds = {"focus_factor": (0.5, 2.0), "focus_shift_dpt": (-1.0, 1.0)}
+        self.steps = {"focus_factor": 0.01, "focus_shift_dpt": 0.005}
         self.mean_focus_mm = float("nan")
 
     def initial_guess(self, model, batch: DPBatch, field: Tensor) -> None:
         """Remember the mean recorded focus distance (mm) to report the offset in mm."""
         self.mean_focus_mm = float(batch.focus_distance_mm.mean())
 
+    def true_focus_mm(self, F_mm: Tensor | float, f_mm: Tensor | float) -> Tensor:
+        """:math:`F' = 1 / (1/(k F) - \\delta / 1000)` (mm), at least 1.05 f (infinity or beyond: 1e9 mm)."""
+        k, dpt = self.params["focus_factor"], self.params.get("focus_shift_dpt", 0.0)
+        F = torch.as_tensor(F_mm, dtype=torch.float64)
+        inv = 1.0 / (F * k) - dpt / 1000.0
+        F_new = torch.where(inv > 1e-9, 1.0 / inv.clamp(min=1e-9), torch.full_like(F, 1e9))
+        return torch.maximum(F_new, torch.as_tensor(f_mm, dtype=torch.float64) * MIN_FOCUS_OVER_FOCAL)
+
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
-        r"""The CoC (px) at focus distance :math:`F' = \max(k F, 1.05 f)`, from the CoC itself, not the depth.
+        r"""The CoC (px) at the true focus distance :math:`F'` (:meth:`true_focus_mm`), from the CoC itself, not
+        the depth.
 
         Eq. 6 is :math:`C = K(F) (1 - F/d)` with :math:`K(F) = f^2 / (N (F - f))` (mm on the sensor), so at the
         same depth :math:`C' = K(F') (1 - (F'/F)(1 - C/K(F)))`, affine in :math:`C`: exact for coc.tif's float
@@ -215,13 +231,12 @@ class FocusOffset(Component):
         phone focus and made the CoC jump between ``k = 1`` and any other ``k``. Applied per channel to the
         CoC the components before it produced.
         """
-        k = self.params["focus_factor"]
-        if k == 1.0:
+        if self.params["focus_factor"] == 1.0 and self.params.get("focus_shift_dpt", 0.0) == 0.0:
             return coc_px
         view = lambda t: t.double().view(-1, 1, 1, 1)  # noqa: E731
         f, N, pitch = view(batch.focal_length_mm), view(batch.f_number), view(batch.pixel_pitch_mm)
         F = view(batch.focus_distance_mm)
-        F_new = torch.maximum(F * k, f * MIN_FOCUS_OVER_FOCAL)
+        F_new = self.true_focus_mm(F, f)
         K, K_new = f * f / (N * (F - f)), f * f / (N * (F_new - f))
         c_mm = coc_px.double() * pitch
         new = (K_new * (1.0 - (F_new / F) * (1.0 - c_mm / K)) / pitch).to(coc_px.dtype)
@@ -229,25 +244,31 @@ class FocusOffset(Component):
 
     def describe(self) -> dict[str, float]:
         p = dict(self.params)
-        p["focus_offset_mm"] = (p["focus_factor"] - 1.0) * self.mean_focus_mm if np.isfinite(self.mean_focus_mm) else float("nan")
+        if np.isfinite(self.mean_focus_mm):
+            F = self.mean_focus_mm
+            p["focus_offset_mm"] = float(self.true_focus_mm(F, 0.0)) - F
+        else:
+            p["focus_offset_mm"] = float("nan")
         return p
 
 
 class PSFProfile(Component):
-    """The disc is not uniform: weight 1 + rim_gain (rho/R)^4 (bright rim, "soap bubble"; < 0 bright centre)."""
+    """The disc is not uniform: weight 1 + rim_gain2 (rho/R)^2 + rim_gain (rho/R)^4 (a bright rim, "soap bubble",
+    < 0 a bright centre). Two terms, since a real lens's (or another renderer's) profile has no set power: a
+    quadratic rim, a quartic one, or a ring just inside the rim (their difference)."""
 
     name = "psf_profile"
     changes_psf = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"rim_gain": 0.0}
-        self.fit_names = ["rim_gain"]
-        self.bounds = {"rim_gain": (-0.95, 10.0)}
-        self.steps = {"rim_gain": 0.2}
+        self.params = {"rim_gain": 0.0, "rim_gain2": 0.0}
+        self.fit_names = ["rim_gain", "rim_gain2"]
+        self.bounds = {"rim_gain": (-0.95, 10.0), "rim_gain2": (-0.95, 10.0)}
+        self.steps = {"rim_gain": 0.2, "rim_gain2": 0.2}
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
-        return replace(shape, rim4=shape.rim4 + self.params["rim_gain"])
+        return replace(shape, rim2=shape.rim2 + self.params.get("rim_gain2", 0.0), rim4=shape.rim4 + self.params["rim_gain"])
 
 
 class FrontBackAsymmetry(Component):
