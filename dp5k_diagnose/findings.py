@@ -16,12 +16,12 @@ from .data import Sample
 
 EXPLAIN = {
     "lr_gain_imbalance": "the left and right views differ in brightness: L/R ratio {lr_ratio_center:.3f} at the centre, {lr_ratio_min:.3f}..{lr_ratio_max:.3f} over the field the fit pairs cover (x {field_x0:+.2f}..{field_x1:+.2f}, y {field_y0:+.2f}..{field_y1:+.2f})",
-    "field_varying_psf": "the blur changes across the field: CoC grows by {coc_growth_at_corner:+.1%} at the corner and the split leaks {edge_leak:.3f} x |x| toward the edges",
+    "field_varying_psf": "the blur changes across the field: CoC grows by {coc_growth_at_corner:+.1%} at the corner, the split leaks {edge_leak:.3f} x |x| toward the edges and the pupil is clipped {vignetting:+.2f} pupil radii per unit field x (cat's eye)",
     "chromatic_defocus": "the colour channels focus differently: focal length shift red {focal_shift_r_mm:+.4f} mm, blue {focal_shift_b_mm:+.4f} mm versus green",
     "disparity_scale": "the L/R disparity is {disparity_scale:.3f} x the ideal half-aperture disparity (crosstalk {crosstalk:.3f})",
     "focus_offset": "the lens focuses elsewhere than recorded: 1/F' = 1/({focus_factor:.3f} F) - {focus_shift_dpt:+.3f} dpt ({focus_offset_mm:+.0f} mm at the mean recorded distance)",
     "psf_profile": "the blur disc is not uniform: radial weight 1 {rim_gain2:+.2f} (rho/R)^2 {rim_gain:+.2f} (rho/R)^4",
-    "front_back_asymmetry": "blur in front of focus differs from blur behind it: back rim gain {back_rim_gain:+.2f}, front centre gain {front_center_gain:+.2f}, front size x{front_size_factor:.3f}",
+    "front_back_asymmetry": "blur in front of focus differs from blur behind it: back rim gain {back_rim_gain:+.2f}, front centre gain {front_center_gain:+.2f}, front size x{front_size_factor:.3f}; spherical aberration {spherical_mm_f1:+.2f} mm at f/1 (zone CoC shift, / N^3)",
     "misregistration": "the views are shifted against the sharp image: left ({left_dx_px:+.2f}, {left_dy_px:+.2f}) px, right ({right_dx_px:+.2f}, {right_dy_px:+.2f}) px",
     "noise": "the views carry {variance_ratio:.1f} x the white-noise variance of a nominal sensor in flat regions: shot variance {shot_var:.2e} per unit intensity, read sigma {read_sigma:.2e} ({excess_fraction:.0%} of the base model's residual is excess noise)",
 }

@@ -176,7 +176,7 @@ def test_effect_sizes_are_shares_of_the_error_beyond_noise() -> None:
         if gain_error == 0.0:
             assert sys_sse == pytest.approx(cfg.systematic_floor * total)
         else:
-            truth = float(((torch.cat([left, right], 1) * gain_error) ** 2).sum())
+            truth = float(((torch.cat([left, right], 1) * gain_error) ** 2 * s[0].score).sum())  # over the scored pixels
             assert sys_sse == pytest.approx(truth, rel=0.1)
 
 
@@ -281,7 +281,8 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
         left, right = BaseModel(0.0, 1.0, [truth]).render(b, field_coords(2, H, W))
         fit = [Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0", "p1")), field_coords(2, H, W))]
         comp = COMPONENTS["front_back_asymmetry"]()
-        assert comp.supported_names(fit) == (["back_rim_gain"] if lo > -1.5 else ["back_rim_gain", "front_center_gain", "front_size_factor"])
+        one_side, both = ["back_rim_gain", "spherical_mm_f1"], ["back_rim_gain", "front_center_gain", "front_size_factor", "spherical_mm_f1"]
+        assert comp.supported_names(fit) == (one_side if lo > -1.5 else both)  # spherical aberration shows on either side
         model = BaseModel(rim_softness_px=0.0).with_component(COMPONENTS["front_back_asymmetry"]())
         lm_fit(model, targets_of(model, fit), fit, 6)
         fitted[lo] = model.components[-1].params

@@ -11,7 +11,9 @@ effect                model change (parameters)
 lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2 + axy x y; left x 2 rho/(1+rho),
                       right x 2/(1+rho) (``lr_ratio_center`` = exp(a0))
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
-                      receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right
+                      receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
+                      cat's-eye vignetting: at field x the pupil cut by a unit circle centred ``vignetting`` x
+                      pupil radii along x (each view's brightness corrected back)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
@@ -22,7 +24,8 @@ focus_offset          CoC recomputed (Eq. 6) at focus distance F' with 1/F' = 1/
 psf_profile           radial weight 1 + ``rim_gain2`` (rho/R)^2 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright
                       centre; a ring near the rim, a quadratic or a quartic rim)
 front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
-                      (1 - (rho/R)^2) and diameter x ``front_size_factor``
+                      (1 - (rho/R)^2) and diameter x ``front_size_factor``; and spherical aberration: pupil zone rho
+                      lands as if the CoC were c - ``spherical_mm_f1`` / N^3 (rho^2 - 3/5) (mm on the sensor)
 misregistration       each view shifted by (``left_dx_px``, ``left_dy_px``), (``right_dx_px``, ``right_dy_px``)
 noise                 signal-dependent white noise var = ``shot_var`` I + ``read_sigma``^2 in the views
                       (estimated from the residual; the prediction itself, an expectation, is unchanged)
@@ -94,7 +97,16 @@ def crosstalk(left: Tensor, right: Tensor, k_rl: Tensor | float, k_lr: Tensor | 
 
 
 class FieldVaryingPSF(Component):
-    """Blur grows off axis and the split softens toward the field edges (half-moons become ellipses)."""
+    """The blur changes across the field, three ways a real lens and sensor do it:
+
+    * ``coc_growth_at_corner``: the blur grows off axis, CoC x (1 + g r^2);
+    * ``edge_leak``: the photodiodes' split shifts off axis (the chief ray's angle), so one view receives
+      ``edge_leak`` max(0, -x) of the other view's light (mirrored on the right);
+    * ``vignetting``: a lens element other than the stop clips the pupil off axis (a cat's-eye pupil): at field
+      x the pupil is cut by a circle of radius 1 centred ``vignetting`` x pupil radii along x, each view's
+      brightness corrected back (its PSF, not its light, changes: the clipped half's blur narrows and its
+      disparity shrinks). Its sign says which side the clipping element sits on.
+    """
 
     name = "field_varying_psf"
     post_params = ("edge_leak",)
@@ -102,13 +114,25 @@ class FieldVaryingPSF(Component):
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0}
+        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0, "vignetting": 0.0}
         self.fit_names = list(self.params)
-        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5)}
-        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02}
+        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5), "vignetting": (-1.2, 1.2)}
+        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02, "vignetting": 0.05}
+
+    @property
+    def field_x_dependent(self) -> bool:  # type: ignore[override]
+        return self.params.get("vignetting", 0.0) != 0.0
+
+    @property
+    def changes_psf(self) -> bool:  # type: ignore[override]
+        return self.params.get("vignetting", 0.0) != 0.0
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         return coc_px * (1.0 + self.params["coc_growth_at_corner"] * field_r2(field))
+
+    def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
+        v = self.params.get("vignetting", 0.0)
+        return replace(shape, clip_dx=shape.clip_dx + v * self.field_x) if v else shape
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
         x = field[:, :1]
@@ -272,20 +296,30 @@ class PSFProfile(Component):
 
 
 class FrontBackAsymmetry(Component):
-    """Spherical-aberration-like: rim-heavy blur behind focus, centre-heavy and larger blur in front."""
+    """Blur in front of focus differs from blur behind it: rim-heavy behind, centre-heavy and larger in front.
+
+    Two descriptions, fitted together: the blur's shape on each side as such (``back_rim_gain``,
+    ``front_center_gain``, ``front_size_factor``: the same shape at every CoC), and its physical cause,
+    spherical aberration (``spherical_mm_f1``): a ray through normalized pupil radius rho lands as if the CoC
+    were ``c - S (rho^2 - 3/5)`` with ``S = spherical_mm_f1 / N^3`` mm on the sensor (third-order aberration
+    grows with the aperture cubed; > 0 over-corrected), so the PSF's shape depends on the CoC (strong near focus,
+    fading for large discs) and on the f-number (f/4 has a tenth of f/1.8's), which a fixed shape cannot follow.
+    """
 
     name = "front_back_asymmetry"
     changes_psf = True
+    shape_needs_optics = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0}
+        self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0, "spherical_mm_f1": 0.0}
         self.fit_names = list(self.params)
         # in front the disc can be centre-heavy or flat, not rim-heavy: a rim on both sides is no asymmetry
         # but psf_profile (with front_center_gain down to -0.45 it fitted a quadratic rim planted on both
         # sides better than psf_profile's quartic one, and was named in its place)
-        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (0.0, 6.0), "front_size_factor": (0.5, 2.0)}
-        self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03}
+        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (0.0, 6.0), "front_size_factor": (0.5, 2.0),
+                       "spherical_mm_f1": (-20.0, 20.0)}
+        self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03, "spherical_mm_f1": 0.2}
 
     SIDE_MIN_COC_PX = 1.5
     """A pixel tells the blur's shape on its side of focus from this |CoC| (px) on."""
@@ -308,6 +342,8 @@ class FrontBackAsymmetry(Component):
             names.append("back_rim_gain")
         if front >= self.SIDE_MIN_SHARE * max(total, 1):
             names += ["front_center_gain", "front_size_factor"]
+        if names:  # spherical aberration acts on both sides and near focus: any blur shows it
+            names.append("spherical_mm_f1")
         return names
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
@@ -318,7 +354,9 @@ class FrontBackAsymmetry(Component):
         g = self.params["front_center_gain"]
         # 1 + g (1 - q) is proportional to 1 - g/(1+g) q
         a2 = (1 - front) * self.params["back_rim_gain"] + front * (-g / (1 + g))
-        return replace(shape, rim2=shape.rim2 + a2)
+        sa_mm = self.params.get("spherical_mm_f1", 0.0)
+        sa_px = sa_mm / shape.f_number**3 / shape.pixel_pitch_mm if sa_mm and shape.f_number > 0 and shape.pixel_pitch_mm > 0 else 0.0
+        return replace(shape, rim2=shape.rim2 + a2, sa_px=shape.sa_px + sa_px)
 
 
 def fittable_names(comp: Component, samples: Sequence[Any]) -> list[str]:
