@@ -11,9 +11,9 @@ from click.testing import CliRunner
 
 from dp5k_cli import main
 from dp5k_common.errors import BadInputError
-from neural_dp.checkpoint import load_checkpoint
+from dp5k_learn.checkpoint import load_checkpoint
 from neural_dp.config import load_config
-from neural_dp.simulators.registry import get_simulator
+from neural_dp.registry import get_simulator
 from neural_dp.train import train
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 
