@@ -7,9 +7,8 @@ from pathlib import Path
 import click
 
 from dp5k_common.deprecation import warn_deprecated
-from dp5k_common.errors import BadInputError
 from dp5k_learn.cli_options import config_overrides, refuse_fresh_run_over, report_run, training_options
-from neural_dp.registry import DIAGNOSED_PREFIX, NEURAL_PREFIX, SYNTAX
+from neural_dp.registry import DIAGNOSED_PREFIX, NEURAL_PREFIX, SYNTAX, spec_texts
 
 
 @click.group("deblur")
@@ -87,21 +86,15 @@ def study_group() -> None:
 @click.option("--device", default="cpu", show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 def study_downstream_command(rgbd_dir: Path, measured: Path, out_dir: Path, simulators: tuple[str, ...],
-                             legacy_names: str | None, neural_checkpoint: Path | None, diagnose_report: Path | None, config_file: Path | None, sets: tuple[str, ...],
-                             few_real_pairs: int, finetune_epochs: int, max_coc_px: float | None, encoding: str,
-                             device: str, seed: int) -> None:
+                             legacy_names: str | None, neural_checkpoint: Path | None, diagnose_report: Path | None,
+                             config_file: Path | None, sets: tuple[str, ...], few_real_pairs: int, finetune_epochs: int,
+                             max_coc_px: float | None, encoding: str, device: str, seed: int) -> None:
     """Synthesize DP data from RGBD_DIR with every simulator, train a deblurrer on each, score them on MEASURED's test
     split (Table 3), and fine-tune each on a few MEASURED train pairs (Table 4)."""
     from .config import load_deblur_config
     from .study import PEER_SIMULATORS, StudyConfig, run_downstream
 
-    specs = list(simulators)
-    if legacy_names is not None:
-        if simulators:
-            raise BadInputError("give --simulator (repeatable) or the older --simulators, not both", where="--simulators")
-        warn_deprecated("--simulators A,B", "--simulator A --simulator B")
-        specs = [s.strip() for s in legacy_names.split(",") if s.strip()]
-    specs = specs or list(PEER_SIMULATORS)
+    specs = spec_texts(simulators, legacy_names) or list(PEER_SIMULATORS)
     for flag, prefix, path in (("--neural-checkpoint CKPT", NEURAL_PREFIX, neural_checkpoint),
                                ("--diagnose-report REPORT.json", DIAGNOSED_PREFIX, diagnose_report)):
         if path is not None:

@@ -74,7 +74,8 @@ def sharp_metrics(pred: Tensor, sharp: Tensor, valid: Tensor) -> dict[str, Tenso
     return {"mae": masked_mae(pred, sharp, m), "psnr": masked_psnr(pred, sharp, m), "ssim": masked_ssim(pred, sharp, m)}
 
 
-def validate_deblur(net: DPDeblurNet, ds: DPPairDataset, info: RankInfo, device: torch.device, max_pairs: int = 0) -> dict[str, float]:
+def validate_deblur(net: DPDeblurNet, ds: DPPairDataset, info: RankInfo, device: torch.device,
+                    max_pairs: int = 0) -> dict[str, float]:
     """Mean masked SSIM / PSNR / MAE of the prediction against ``sharp`` on whole val pairs, sharded over processes
     (:func:`dp5k_learn.training.validate_pairs`)."""
     def score(batch: DPBatch) -> dict[str, Tensor]:
@@ -131,6 +132,6 @@ def _train(root: Path, out: Path, cfg: DeblurTrainConfig, info: RankInfo, device
 
     loop = EpochLoop(run=run, forward=forward_fn(run.net), loss=loss_fn(cfg.optim.grad_weight, cfg.charbonnier_eps),
                      validate=lambda: validate_deblur(net, val_ds, info, device, cfg.data.val_pairs),
-                     model_config=asdict(cfg.model), config={**cfg.to_dict(), "init_from": None if init_from is None else str(init_from)},
-                     defaults=asdict(DeblurNetConfig()))
+                     model_config=asdict(cfg.model), defaults=asdict(DeblurNetConfig()),
+                     config={**cfg.to_dict(), "init_from": None if init_from is None else str(init_from)})
     return run_epochs(loop, out, resume=resume, on_fresh_start=start_from_checkpoint, desc="deblur train")

@@ -46,8 +46,8 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
                    "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
-def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out_dir: Path | None, seed: int, fit_pairs: str, nominal_noise: str,
-                     neural_steps: int, sharp_f_number: str) -> None:
+def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out_dir: Path | None, seed: int, fit_pairs: str,
+                     nominal_noise: str, neural_steps: int, sharp_f_number: str) -> None:
     """Fit the simulator on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.

@@ -379,8 +379,8 @@ def run_diagnose(dataset: str | Path, model: SimulatorSpec = SimulatorSpec(), ou
                  cfg: DiagnoseConfig | None = None) -> dict[str, Any]:
     """The whole ``dp5k diagnose``: returns the report.json object and writes DIR/report.{json,md} when ``out``.
 
-    ``model`` is the base model, a peer or a Neural DP checkpoint (:class:`~neural_dp.registry.SimulatorSpec`, parsed from ``--simulator``);
-    the effect vocabulary is tested on the physical base model in every case (its components are what can be
+    ``model`` is the base model, a peer or a Neural DP checkpoint (:class:`~neural_dp.registry.SimulatorSpec`, from
+    ``--simulator``); the effect vocabulary is tested on the physical base model in every case (its components are what can be
     named and added); for a peer, its own residuals are analysed and its metrics reported beside the base's.
     """
     cfg = cfg or DiagnoseConfig()

@@ -102,7 +102,7 @@ def optimiser_step(module: nn.Module, opt: torch.optim.Optimizer, sched: torch.o
         output = forward(batch)
     value = loss(output, batch)
     if not torch.isfinite(value):
-        raise StageError(f"loss is {float(value)} at step {step} (lower the learning rate?)", where=where)
+        raise StageError(f"loss is {float(value.detach())} at step {step} (lower the learning rate?)", where=where)
     opt.zero_grad(set_to_none=True)
     value.backward()
     if grad_clip > 0:

@@ -11,7 +11,7 @@ from dp5k_common.errors import BadInputError
 from dp5k_learn.cli_options import config_overrides, refuse_fresh_run_over, report_run, training_options
 
 from .config import load_config
-from .simulators.catalog import PEERS, SYNTAX, SimulatorSpec
+from .simulators.catalog import PEERS, SYNTAX, SimulatorSpec, spec_texts
 
 
 def default_run_dir(dataset: Path) -> Path:
@@ -51,14 +51,9 @@ def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str
     Raises:
         BadInputError: ``--simulator`` together with ``--simulators``, a bad spec, or ``neural`` with no checkpoint.
     """
-    if legacy_names is not None:
-        if simulators:
-            raise BadInputError("give --simulator (repeatable) or the older --simulators, not both", where="--simulators")
-        warn_deprecated("--simulators A,B", "--simulator A --simulator B")
+    texts = spec_texts(simulators, legacy_names) or [*PEERS, "base", "neural"]
     if checkpoint is not None:
         warn_deprecated("--checkpoint CKPT", "--simulator neural:CKPT")
-    texts = list(simulators) or ([t.strip() for t in legacy_names.split(",") if t.strip()] if legacy_names
-                                 else [*PEERS, "base", "neural"])
     guess = default_run_dir(dataset) / "best.pt"
     if "neural" in texts and checkpoint is None and not guess.is_file():
         raise BadInputError(f"no checkpoint at {guess}; run 'dp5k train' first, name one with --simulator neural:CKPT, "

@@ -160,8 +160,10 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         ids = ids[:max_pairs]
     if not ids:
         raise EmptySplitError(f"split '{split}' has no pairs to evaluate", where=root / "dataset.json")
-    specs = [s if isinstance(s, SimulatorSpec) else SimulatorSpec.parse(s, checkpoint) for s in simulators] if simulators \
-        else default_simulators(checkpoint)
+    if simulators:
+        specs = [s if isinstance(s, SimulatorSpec) else SimulatorSpec.parse(s, checkpoint) for s in simulators]
+    else:
+        specs = default_simulators(checkpoint)
     for spec in specs:
         spec.check_files()
     names = column_names(specs)

@@ -6,7 +6,7 @@ Other stages (``dp5k_diagnose``, ``dp5k_deblur``, the demo) import ``neural_dp``
 
 * Simulators by name (:mod:`neural_dp.simulators.catalog`): :class:`SimulatorSpec` (``--simulator``:
   ``disk | butterworth | raytrace | base | neural:CKPT | diagnosed:REPORT.json``), :func:`get_simulator`,
-  :func:`default_simulators`, :data:`PEERS`, :data:`SYNTAX`.
+  :func:`default_simulators`, :func:`spec_texts`, :data:`PEERS`, :data:`SYNTAX`.
 * The physical base model and its effect components, which ``dp5k diagnose`` detects, fits and writes out
   (:mod:`neural_dp.simulators.base`): :class:`BaseModel`, :class:`Component`, :data:`COMPONENTS`,
   :func:`fit_parameters`, :func:`parameter_intervals`, :func:`field_coords`, :func:`model_to_spec`,
@@ -24,7 +24,8 @@ from .simulators.base import BaseModel, Component, field_coords, fit_parameters
 from .simulators.base.components import COMPONENTS, Noise, fittable_names
 from .simulators.base.fit import parameter_intervals
 from .simulators.base.spec import model_from_spec, model_to_spec
-from .simulators.catalog import DIAGNOSED_PREFIX, NEURAL_PREFIX, PEERS, SYNTAX, SimulatorSpec, default_simulators, get_simulator
+from .simulators.catalog import (DIAGNOSED_PREFIX, NEURAL_PREFIX, PEERS, SYNTAX, SimulatorSpec, default_simulators,
+                                 get_simulator, spec_texts)
 from .simulators.interface import DPSimulator
 from .simulators.neural import NeuralDPSimulator
 from .synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
@@ -34,5 +35,6 @@ __all__ = [
     "BaseModel", "COMPONENTS", "Component", "DIAGNOSED_PREFIX", "DPSimulator", "NEURAL_PREFIX",
     "NEW_PARAMETER_PREFIX", "NeuralDPSimulator", "Noise", "PAPER_F_NUMBERS", "PEERS", "SYNTAX", "SimulatorSpec",
     "SynthConfig", "default_simulators", "extend_multiscale", "field_coords", "finetune", "fit_parameters",
-    "fittable_names", "get_simulator", "model_from_spec", "model_to_spec", "parameter_intervals", "synthesize",
+    "fittable_names", "get_simulator", "model_from_spec", "model_to_spec", "parameter_intervals", "spec_texts",
+    "synthesize",
 ]

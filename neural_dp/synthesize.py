@@ -239,10 +239,13 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         "world_size": N}``; written / skipped / failed count this rank's share, pairs the whole dataset.
 
     Raises:
-        BadInputError: ``in_dir`` has no frame folders, or bad options.
+        BadInputError: a bad simulator spec or a missing checkpoint / report (checked first), ``in_dir`` has no frame
+            folders, or bad options.
         PartialFailureError: some frames of this rank's share failed (the others were written; the index
             lists every pair written by any rank).
     """
+    spec = SimulatorSpec.parse(cfg.simulator, cfg.checkpoint)
+    spec.check_files()
     src, out = Path(in_dir), Path(out_dir)
     if not src.is_dir():
         raise BadInputError("input folder not found", where=src)
@@ -251,8 +254,6 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         raise BadInputError("no frame folders (expected IN/<frame>/image.png, depth, intrinsics.json)", where=src)
     if not cfg.f_numbers or any(n <= 0 for n in cfg.f_numbers):
         raise BadInputError(f"f-numbers must be positive, got {cfg.f_numbers}", where="synthesize")
-    spec = SimulatorSpec.parse(cfg.simulator, cfg.checkpoint)
-    spec.check_files()
     info = rank_info()
     with _rank_group(info):
         summary = _synthesize_share(out, frames, shard(frames, info), info, spec, cfg)

@@ -22,10 +22,11 @@ for an absent simulator (none of them depends on an optional third-party extra).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 
 from .interface import DPSimulator
@@ -184,6 +185,21 @@ class SimulatorSpec:
         sim = cls()
         sim.eval()
         return sim
+
+
+def spec_texts(simulators: Sequence[str], legacy_names: str | None) -> list[str]:
+    """The values of a repeatable ``--simulator``, or those of the deprecated ``--simulators A,B`` (with its
+    deprecation line); empty when neither was given.
+
+    Raises:
+        BadInputError: both were given.
+    """
+    if legacy_names is None:
+        return list(simulators)
+    if simulators:
+        raise BadInputError("give --simulator (repeatable) or the older --simulators, not both", where="--simulators")
+    warn_deprecated("--simulators A,B", "--simulator A --simulator B")
+    return [t.strip() for t in legacy_names.split(",") if t.strip()]
 
 
 def default_simulators(checkpoint: str | os.PathLike[str] | None = None) -> list[SimulatorSpec]:
