@@ -31,9 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
-from neural_dp.simulators.base import BaseModel, fit_parameters
-from neural_dp.simulators.base.components import fittable_names
-from neural_dp.simulators.base.fit import parameter_intervals
+from neural_dp.registry import BaseModel, fit_parameters, fittable_names, parameter_intervals
 
 from .data import Sample
 from .detect import (PSF_NUISANCE, DetectConfig, Discrimination, Finding, _finite, clustered_delta, discriminate, effect_test, explanation,

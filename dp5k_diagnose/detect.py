@@ -37,9 +37,9 @@ from torch import Tensor
 
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.progress import progress
-from neural_dp.simulators.base import BaseModel, fit_parameters
+from neural_dp.registry import BaseModel, fit_parameters
 
-from neural_dp.simulators.base.components import COMPONENTS, Noise, fittable_names
+from neural_dp.registry import COMPONENTS, Noise, fittable_names
 from .data import Sample
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...batch import DPBatch
+from dp5k_learn.batch import DPBatch
 
 if TYPE_CHECKING:
     from .model import BaseModel
