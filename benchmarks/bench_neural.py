@@ -19,8 +19,8 @@ measurement ends) and the git commit. Each figure is set against a floor measure
   the CUDA allocator's peak. The row also gives the pixels the tiles compute per image pixel (halo overhead).
 * ``untiled``: the floor for inference: one whole-image pass of the same network (no halo), its seconds and
   peak memory, in its own fresh process.
-* ``train``: samples per second of :func:`neural_dp.train.train_step` (forward, Eq. 8 loss, backward, Adam) on
-  ``--train-crop`` px crops, against one forward pass of the same batch (the floor).
+* ``train``: samples per second of the Neural DP training step (:func:`dp5k_learn.training.optimiser_step`:
+  forward, Eq. 8 loss, backward, Adam) on ``--train-crop`` px crops, against one forward pass of the same batch (the floor).
 * ``synth``: frames per second of ``dp5k synthesize`` (``--synth-simulator``, default ``base``) on
   ``--synth-frames`` generated 640 x 480 RGBD frames: one process, then ``torchrun --nproc_per_node --ranks``
   (one thread per process in both, so their ratio is the scaling with ranks), against reading the frames.
@@ -45,13 +45,14 @@ import numpy as np
 import torch
 
 from dp5k_common.optics import coc_diameter_px
+from dp5k_learn.batch import DPBatch
+from dp5k_learn.training import optimiser_step
 from dp5k_testing.torchrun import run_torchrun
-from neural_dp.batch import DPBatch
 from neural_dp.config import TrainConfig
 from neural_dp.model import ModelConfig
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
 from neural_dp.synthesize import SynthConfig, load_frame, synthesize
-from neural_dp.train import train_step
+from neural_dp.train import forward_fn, loss_fn
 
 ROOT = Path(__file__).resolve().parents[1]
 PARTS = ("read", "inference", "untiled", "train", "synth")
@@ -188,9 +189,9 @@ def bench_train(args: argparse.Namespace) -> tuple[str, str, str]:
     batch = scene(args.train_crop, args.train_crop, args.device, batch=args.train_batch)
 
     def step() -> None:
-        train_step(sim.net, sim.net, batch, opt, sched, coc_scale_px=sim.cfg.coc_scale_px,
-                   border_px=sim.net.reach_px, grad_weight=cfg.optim.grad_weight, grad_clip=cfg.optim.grad_clip,
-                   amp=cfg.optim.amp and args.device.startswith("cuda"))
+        optimiser_step(sim.net, opt, sched, batch, forward_fn(sim.net, sim.cfg.coc_scale_px),
+                       loss_fn(sim.net.reach_px, cfg.optim.grad_weight), grad_clip=cfg.optim.grad_clip,
+                       amp=cfg.optim.amp and args.device.startswith("cuda"))
 
     step()  # warm-up: allocations, Adam state
     sync(args.device)
@@ -204,7 +205,7 @@ def bench_train(args: argparse.Namespace) -> tuple[str, str, str]:
         sim.net(batch.sharp, model_inputs(batch, sim.cfg.coc_scale_px))
         sync(args.device)
         forward = time.perf_counter() - t0
-    what = (f"training step (train_step) | {args.train_crop}x{args.train_crop} crops, batch {args.train_batch}, "
+    what = (f"training step (optimiser_step) | {args.train_crop}x{args.train_crop} crops, batch {args.train_batch}, "
             f"{args.channels} ch, {args.levels} levels, {args.train_steps} timed step(s)")
     return what, f"{args.train_batch / per_step:.3f} samples/s ({per_step:.1f} s/step)", \
         f"forward alone {args.train_batch / forward:.3f} samples/s"

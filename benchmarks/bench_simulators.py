@@ -32,12 +32,12 @@ import torch
 
 
 from dp5k_common.optics import coc_diameter_px
-from neural_dp.batch import DPBatch
-from neural_dp.data import DPPairDataset, collate_dp
-from neural_dp.losses import dp_loss
+from dp5k_learn.batch import DPBatch
+from dp5k_learn.data import DPPairDataset, collate_dp
+from dp5k_learn.losses import dp_loss
 from neural_dp.model import ModelConfig
+from neural_dp.registry import PEERS, get_simulator
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
-from neural_dp.simulators.registry import PEERS, get_simulator
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:

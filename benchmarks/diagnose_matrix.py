@@ -292,7 +292,7 @@ def run_job(job: tuple[Case, dict[str, float], Path, tuple[int, int], int, bool]
 def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int, int], pairs: int, keep: bool) -> dict[str, Any]:
     """Write the case's dataset, diagnose it as the CLI does, and return its result row."""
     from dp5k_diagnose.config import DetectConfig
-    from dp5k_diagnose.model_spec import ModelSpec
+    from neural_dp.registry import SimulatorSpec
     from dp5k_diagnose.run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
     renderer = RENDERERS[case.renderer]
@@ -311,7 +311,7 @@ def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int
         shot, read = renderer.nominal_noise
         cfg = DiagnoseConfig(seed=0, fit_pairs=auto_fit_pairs(ds), detect=DetectConfig(nominal_shot_var=shot, nominal_read_sigma=read))
         t1 = time.perf_counter()
-        run_diagnose(ds, ModelSpec(), ds / "diagnose", cfg)
+        run_diagnose(ds, SimulatorSpec(), ds / "diagnose", cfg)
         row["seconds"] = round(time.perf_counter() - t1, 1)
         row["load_after"] = round(os.getloadavg()[0], 2)
         rep = json.loads((ds / "diagnose" / "report.json").read_text())

@@ -20,9 +20,9 @@ from pathlib import Path
 
 
 from dp5k_common.effects import EFFECT_NAMES
-from dp5k_diagnose.model_spec import ModelSpec
 from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
 from dp5k_testing.foreign_dp import write_dataset
+from neural_dp.registry import SimulatorSpec
 
 
 def main() -> None:
@@ -50,7 +50,7 @@ def main() -> None:
                       f_numbers=tuple(float(v) for v in a.f_numbers.split(",")),
                       sharp_f_number=a.sharp_f_number, state_sharp_f_number=not a.unstated_sharp, sampling=a.sampling)
         t0 = time.perf_counter()
-        res = run_diagnose(ds, ModelSpec(), ds / "diagnose", DiagnoseConfig(fit_pairs=6))
+        res = run_diagnose(ds, SimulatorSpec(), ds / "diagnose", DiagnoseConfig(fit_pairs=6))
         dt = time.perf_counter() - t0
         top = ", ".join(f"{f['effect']} {f['effect_size']:.2f} ({f['p_value']:.1g})" for f in res["findings"][:3])
         g = res["gain"]

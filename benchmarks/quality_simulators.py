@@ -22,7 +22,6 @@ from pathlib import Path
 from dp5k_studio.dataset import make_dataset  # noqa: E402  (benchmarks may use the world)
 from neural_dp.config import load_config
 from neural_dp.evaluate import evaluate
-from neural_dp.simulators.registry import available_simulators
 from neural_dp.train import train
 
 EFFECTS = {"lr_gain_imbalance": 1.0, "psf_profile": 1.0, "disparity_scale": 1.0, "field_varying_psf": 1.0,
@@ -56,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     run = train(ds, args.out / "run", cfg)
     t_train = time.perf_counter() - t0
-    res = evaluate(ds, args.out / "eval", split="test", simulators=available_simulators(with_neural=True),
+    res = evaluate(ds, args.out / "eval", split="test", simulators=None,
                    checkpoint=args.out / "run" / "best.pt", device=args.device, figures=2)
     settings = {"effects": EFFECTS, "scenes": args.scenes, "size": [W, H], "train_overrides": overrides,
                 "best_epoch": run.best_epoch, "best_val_ssim": run.best_val_ssim, "steps": run.steps,

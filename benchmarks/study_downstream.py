@@ -82,12 +82,12 @@ def main() -> int:
         make_dataset(measured, scenes=a.measured, size=(W, H), f_numbers=(2.0, 4.0), cameras=(0,), seed=202, effects=effects)
     report = None
     if not a.no_diagnose:
-        from dp5k_diagnose.model_spec import ModelSpec
         from dp5k_diagnose.run import run_diagnose
+        from neural_dp.registry import SimulatorSpec
 
         report = out / "diagnose" / "report.json"
         if not report.is_file():
-            rep = run_diagnose(measured, ModelSpec(), out / "diagnose")
+            rep = run_diagnose(measured, SimulatorSpec(), out / "diagnose")
             print(f"diagnose: cause {rep['cause']} ({time.perf_counter() - t_start:.0f} s so far)", flush=True)
 
     pairs_per_epoch = 16 * BATCH  # 16 steps per epoch
@@ -96,8 +96,9 @@ def main() -> int:
     )
     train = replace(train, data=replace(train.data, crop_px=48, batch_size=BATCH, samples_per_epoch=pairs_per_epoch),
                     optim=replace(train.optim, epochs=max(1, a.steps // 16), lr=2e-3))
-    cfg = StudyConfig(simulators=PEER_SIMULATORS, neural_checkpoint=a.neural_checkpoint,
-                      diagnose_report=None if report is None else str(report), train=train,
+    specs = PEER_SIMULATORS + ((f"neural:{a.neural_checkpoint}",) if a.neural_checkpoint else ()) \
+        + ((f"diagnosed:{report}",) if report is not None else ())
+    cfg = StudyConfig(simulators=specs, train=train,
                       few_real_pairs=a.few_real_pairs, finetune_epochs=max(1, a.finetune_steps // 16), device=a.device)
     run_downstream(rgbd, measured, out / "study", cfg)
     wall = time.perf_counter() - t_start

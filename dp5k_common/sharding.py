@@ -6,6 +6,10 @@ every ``WORLD_SIZE``-th item of the sorted list. The split is a pure function of
 item is owned by exactly one rank whatever the rank count, and a rank that is restarted finds and resumes
 its own share. No process group is needed for the split itself (``torch.distributed`` is not imported).
 
+:class:`RankInfo` is the project's one rank type and :func:`rank_info` its one reader of torchrun's environment
+(``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``): sharded stages and the trainers (``dp5k_learn.distributed``, which
+joins the process group and picks the device) all start from it.
+
 >>> shard(["a", "b", "c", "d", "e"], RankInfo(1, 2))
 ['b', 'd']
 >>> sorted(shard(["a", "b", "c"], RankInfo(0, 2)) + shard(["a", "b", "c"], RankInfo(1, 2)))
@@ -26,10 +30,12 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class RankInfo:
-    """This process's global ``rank`` among ``world_size`` processes (0 of 1 when run alone)."""
+    """This process's global ``rank`` among ``world_size`` processes (0 of 1 when run alone), and its
+    ``local_rank`` on its node (which device it takes)."""
 
     rank: int = 0
     world_size: int = 1
+    local_rank: int = 0
 
     @property
     def is_main(self) -> bool:
@@ -41,17 +47,25 @@ class RankInfo:
 
 
 def rank_info(environ: Mapping[str, str] | None = None) -> RankInfo:
-    """Read torchrun's ``RANK`` / ``WORLD_SIZE`` (absent: a single process). Bad values are a one-line error."""
+    """Read torchrun's ``RANK`` / ``WORLD_SIZE`` / ``LOCAL_RANK`` (``RANK`` absent: a single process).
+
+    Raises:
+        BadInputError: a value is not an integer, ``RANK`` is not in ``0..WORLD_SIZE-1`` or ``LOCAL_RANK`` is
+            negative (one line naming the variables).
+    """
     env = os.environ if environ is None else environ
     if "RANK" not in env:
         return RankInfo()
     try:
-        rank, world = int(env["RANK"]), int(env.get("WORLD_SIZE", "1"))
+        rank, world, local = int(env["RANK"]), int(env.get("WORLD_SIZE", "1")), int(env.get("LOCAL_RANK", "0"))
     except ValueError as exc:
-        raise BadInputError(f"RANK={env.get('RANK')!r} / WORLD_SIZE={env.get('WORLD_SIZE')!r} are not integers", where="environment") from exc
+        raise BadInputError(f"RANK={env.get('RANK')!r} / WORLD_SIZE={env.get('WORLD_SIZE')!r} / LOCAL_RANK="
+                            f"{env.get('LOCAL_RANK')!r} are not integers", where="environment") from exc
     if world < 1 or not 0 <= rank < world:
         raise BadInputError(f"RANK={rank} is not in 0..WORLD_SIZE-1 (WORLD_SIZE={world})", where="environment")
-    return RankInfo(rank, world)
+    if local < 0:
+        raise BadInputError(f"LOCAL_RANK={local} is negative", where="environment")
+    return RankInfo(rank, world, local)
 
 
 def shard(items: Sequence[T], info: RankInfo) -> list[T]:

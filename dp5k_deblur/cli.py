@@ -6,7 +6,9 @@ from pathlib import Path
 
 import click
 
-from neural_dp.cli import config_overrides, refuse_fresh_run_over, training_options
+from dp5k_common.deprecation import warn_deprecated
+from dp5k_learn.cli_options import config_overrides, refuse_fresh_run_over, report_run, training_options
+from neural_dp.registry import DIAGNOSED_PREFIX, NEURAL_PREFIX, SYNTAX, spec_texts
 
 
 @click.group("deblur")
@@ -35,8 +37,7 @@ def deblur_train_command(dataset: Path, out_dir: Path, config_file: Path | None,
     cfg = load_deblur_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop, device, seed))
     refuse_fresh_run_over(out_dir, no_resume)
     result = train_deblur(dataset, out_dir, cfg, resume=not no_resume, init_from=init_from)
-    click.echo(f"{out_dir}: {result.epochs_done} epoch(s), {result.steps} steps; best val SSIM {result.best_val_ssim:.4f} "
-               f"at epoch {result.best_epoch} -> {out_dir / 'best.pt'}")
+    click.echo(report_run(out_dir, result))
 
 
 @deblur_group.command("evaluate")
@@ -66,11 +67,13 @@ def study_group() -> None:
 @click.argument("measured", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True,
               help="Study folder (table3/table4 .md/.json, figure.png, study.json; synth/ and runs/ inside).")
-@click.option("--simulators", default=",".join(("disk", "butterworth", "raytrace", "base")), show_default=True,
-              help="Comma-separated simulators that need no extra input.")
-@click.option("--neural-checkpoint", type=click.Path(path_type=Path), default=None, help="Adds the Neural DP Simulator.")
+@click.option("--simulator", "simulators", multiple=True, metavar="SPEC",
+              help=f"A simulator to study, repeatable: {SYNTAX}. Default: disk, butterworth, raytrace, base.")
+@click.option("--simulators", "legacy_names", default=None, metavar="A,B", help="Deprecated: --simulator A --simulator B.")
+@click.option("--neural-checkpoint", type=click.Path(path_type=Path), default=None,
+              help="Deprecated: --simulator neural:CKPT (adds it).")
 @click.option("--diagnose-report", type=click.Path(path_type=Path), default=None,
-              help="Adds diagnosed:REPORT (a dp5k diagnose report.json).")
+              help="Deprecated: --simulator diagnosed:REPORT.json (adds it).")
 @click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
               help="Deblurrer TOML config (the same budget for every run); see dp5k_deblur/config.py.")
 @click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Deblurrer config override; repeatable.")
@@ -82,19 +85,23 @@ def study_group() -> None:
               help="How the frames' image.png is encoded.")
 @click.option("--device", default="cpu", show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
-def study_downstream_command(rgbd_dir: Path, measured: Path, out_dir: Path, simulators: str, neural_checkpoint: Path | None,
-                             diagnose_report: Path | None, config_file: Path | None, sets: tuple[str, ...],
-                             few_real_pairs: int, finetune_epochs: int, max_coc_px: float | None, encoding: str,
-                             device: str, seed: int) -> None:
+def study_downstream_command(rgbd_dir: Path, measured: Path, out_dir: Path, simulators: tuple[str, ...],
+                             legacy_names: str | None, neural_checkpoint: Path | None, diagnose_report: Path | None,
+                             config_file: Path | None, sets: tuple[str, ...], few_real_pairs: int, finetune_epochs: int,
+                             max_coc_px: float | None, encoding: str, device: str, seed: int) -> None:
     """Synthesize DP data from RGBD_DIR with every simulator, train a deblurrer on each, score them on MEASURED's test
     split (Table 3), and fine-tune each on a few MEASURED train pairs (Table 4)."""
     from .config import load_deblur_config
-    from .study import StudyConfig, run_downstream
+    from .study import PEER_SIMULATORS, StudyConfig, run_downstream
 
+    specs = spec_texts(simulators, legacy_names) or list(PEER_SIMULATORS)
+    for flag, prefix, path in (("--neural-checkpoint CKPT", NEURAL_PREFIX, neural_checkpoint),
+                               ("--diagnose-report REPORT.json", DIAGNOSED_PREFIX, diagnose_report)):
+        if path is not None:
+            warn_deprecated(flag, f"--simulator {prefix}{flag.split()[1]}")
+            specs.append(f"{prefix}{path}")
     cfg = StudyConfig(
-        simulators=tuple(s.strip() for s in simulators.split(",") if s.strip()),
-        neural_checkpoint=None if neural_checkpoint is None else str(neural_checkpoint),
-        diagnose_report=None if diagnose_report is None else str(diagnose_report),
+        simulators=tuple(specs),
         max_coc_px=max_coc_px, encoding=encoding, train=load_deblur_config(config_file, sets),
         few_real_pairs=few_real_pairs, finetune_epochs=finetune_epochs, device=device, seed=seed,
     )

@@ -1,5 +1,5 @@
 """The deblurrer's training configuration: the same sections, TOML files and ``section.key=value`` overrides as
-``dp5k train`` (:mod:`neural_dp.config`), with a :class:`~dp5k_deblur.model.DeblurNetConfig` as the model.
+``dp5k train`` (:mod:`dp5k_learn.config`), with a :class:`~dp5k_deblur.model.DeblurNetConfig` as the model.
 
 Example ``deblur.toml`` (every key optional)::
 
@@ -21,8 +21,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from neural_dp.losses import CHARBONNIER_EPS
-from neural_dp.config import DataConfig, OptimConfig, load_config
+from dp5k_learn.config import DataConfig, OptimConfig, load_config
+from dp5k_learn.losses import CHARBONNIER_EPS
 
 from .model import DeblurNetConfig
 
@@ -53,4 +53,4 @@ class DeblurTrainConfig:
 def load_deblur_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
                        base: DeblurTrainConfig | None = None) -> DeblurTrainConfig:
     """Defaults, then the TOML (or JSON) file, then ``section.key=value`` overrides (BadInputError on unknown keys)."""
-    return load_config(path, overrides, base=base or DeblurTrainConfig())  # type: ignore[arg-type, return-value]
+    return load_config(path, overrides, base or DeblurTrainConfig())

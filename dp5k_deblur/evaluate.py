@@ -1,5 +1,5 @@
 """Score a trained deblurrer on a dataset split: masked MAE, PSNR and SSIM of its prediction against ``sharp``
-(:mod:`neural_dp.metrics`), per pair and mean, beside the same metrics for the blurred input L + R (the floor a
+(:mod:`dp5k_learn.metrics`), per pair and mean, beside the same metrics for the blurred input L + R (the floor a
 deblurrer must beat), and a picture per pair (input L + R | prediction | sharp).
 
 Writes into ``out`` (each file atomically): ``metrics.json``, ``table.md``, ``figures/<pair_id>.png``.
@@ -21,7 +21,7 @@ from torch import Tensor
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
 from dp5k_common.transfer import linear_to_srgb
-from neural_dp.data import CropSpec, DPPairDataset, collate_dp
+from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
 
 from .model import DPDeblurNet
 from .train import load_deblurrer, sharp_metrics, views

@@ -4,7 +4,7 @@ DP deblurrer, scored on real (measured) test pairs.
 From one folder of RGBD frames (``dp5k synthesize``'s input) and one measured dataset:
 
 1. synthesize a DP dataset with every simulator, from the same frames and the same drawn optics (the random focus
-   and f-number of a frame depend only on the seed and the frame's name, :mod:`neural_dp.synthesize`);
+   and f-number of a frame depend only on the seed and the frame's name, ``neural_dp.synthesize``);
 2. train one deblurrer per simulator with the same budget and seed (``cfg.train``); each is used as it is at the
    end of its budget (``last.pt``: a val split of a few synthetic pairs is no guide to measured pairs);
 3. score each on the measured test split: **Table 3** (with the blurred input L + R as the floor);
@@ -29,7 +29,7 @@ from typing import Any
 from dp5k_common.dataset import DatasetReader, write_index
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import atomic_path, write_bytes_atomic, write_json_atomic
-from neural_dp.synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
+from neural_dp.registry import PAPER_F_NUMBERS, PEERS, SimulatorSpec, SynthConfig, synthesize
 
 from .config import DeblurTrainConfig
 from .evaluate import METRICS, DeblurScores, score
@@ -39,8 +39,8 @@ logger = logging.getLogger(__name__)
 FIGURE_MARGIN_DB = 0.3
 """Space above and below the figure's PSNR range, dB."""
 
-PEER_SIMULATORS: tuple[str, ...] = ("disk", "butterworth", "raytrace", "base")
-"""Run without any extra input; ``neural`` needs a checkpoint and ``diagnosed`` a diagnose report."""
+PEER_SIMULATORS: tuple[str, ...] = (*PEERS, "base")
+"""The simulators that need no file (``neural:CKPT`` needs a checkpoint, ``diagnosed:REPORT.json`` a report)."""
 
 
 @dataclass(frozen=True)
@@ -48,10 +48,8 @@ class StudyConfig:
     """The study's settings; every deblurrer gets the same ``train`` budget and seed."""
 
     simulators: tuple[str, ...] = PEER_SIMULATORS
-    neural_checkpoint: str | None = None
-    """Adds ``neural`` (the Neural DP Simulator) when given."""
-    diagnose_report: str | None = None
-    """Adds ``diagnosed:REPORT`` (the base model with the effects ``dp5k diagnose`` fitted) when given."""
+    """Simulator specs (:class:`~neural_dp.registry.SimulatorSpec`), e.g. ``neural:CKPT`` for the Neural DP
+    Simulator and ``diagnosed:REPORT.json`` for the base model with the effects ``dp5k diagnose`` fitted."""
     f_numbers: tuple[float, ...] = PAPER_F_NUMBERS
     """Drawn per frame (the paper: 1.8-5.6)."""
     max_coc_px: float | None = None
@@ -66,17 +64,19 @@ class StudyConfig:
     device: str = "cpu"
     seed: int = 0
 
-    def simulator_names(self) -> list[str]:
-        names = list(self.simulators)
-        if self.neural_checkpoint:
-            names.append("neural")
-        if self.diagnose_report:
-            names.append(f"diagnosed:{self.diagnose_report}")
-        return names
+    def specs(self) -> list[SimulatorSpec]:
+        """The parsed ``simulators``; each names a folder and a row, so two of one name are refused.
 
-
-def _label(sim: str) -> str:
-    return "diagnosed" if sim.startswith("diagnosed:") else sim
+        Raises:
+            BadInputError: a bad spec, a missing checkpoint or report, or two specs of one simulator.
+        """
+        specs = [SimulatorSpec.parse(s) for s in self.simulators]
+        names = [s.name for s in specs]
+        if len(set(names)) < len(names):
+            raise BadInputError(f"each simulator once, please: {', '.join(self.simulators)}", where="--simulator")
+        for spec in specs:
+            spec.check_files()
+        return specs
 
 
 def few_pairs_dataset(real: Path, out: Path, count: int) -> Path:
@@ -149,6 +149,7 @@ def run_downstream(rgbd_dir: str | Path, real: str | Path, out: str | Path, cfg:
         BadInputError / EmptySplitError: unusable frames, dataset or settings.
     """
     cfg = cfg or StudyConfig()
+    specs = cfg.specs()
     rgbd_dir, real, out = Path(rgbd_dir), Path(real), Path(out)
     train_cfg = replace(cfg.train, seed=cfg.seed, device=cfg.device)
     tune_cfg = replace(train_cfg, optim=replace(train_cfg.optim, epochs=cfg.finetune_epochs, lr=cfg.finetune_lr))
@@ -171,13 +172,12 @@ def run_downstream(rgbd_dir: str | Path, real: str | Path, out: str | Path, cfg:
     t4 += [_row(f"measured: {cfg.few_real_pairs} pairs only (fine-tune budget)", few_only),
            _row("measured: all train pairs (full budget)", all_real)]
     t3.append(_row("blurred input L + R (no deblurring)", floor, "input"))
-    for sim in cfg.simulator_names():
-        name = _label(sim)
+    for spec in specs:
+        name = spec.name
         t0 = time.perf_counter()
         synth = out / "synth" / name
-        synthesize(rgbd_dir, synth, SynthConfig(simulator=sim, checkpoint=cfg.neural_checkpoint if sim == "neural" else None,
-                                                 f_numbers=cfg.f_numbers, max_coc_px=cfg.max_coc_px, encoding=cfg.encoding,
-                                                 seed=cfg.seed, device=cfg.device))
+        synthesize(rgbd_dir, synth, SynthConfig(simulator=str(spec), f_numbers=cfg.f_numbers, max_coc_px=cfg.max_coc_px,
+                                                 encoding=cfg.encoding, seed=cfg.seed, device=cfg.device))
         pre = out / "runs" / f"synth_{name}"
         train_deblur(synth, pre, train_cfg)
         t3.append(_row(f"synthetic: {name}", scored(pre), simulator=name))

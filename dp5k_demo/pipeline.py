@@ -38,7 +38,7 @@ class DemoScale:
         diag_scenes: scenes of the hidden-effect dataset.
         rgbd_frames: RGBD frames given to ``synthesize``.
         eval_pairs: pairs per dataset that ``evaluate`` compares the simulators on.
-        neural_steps: fine-tuning steps of the Neural DP extension in ``diagnose --model neural:CKPT``
+        neural_steps: fine-tuning steps of the Neural DP extension in ``diagnose --simulator neural:CKPT``
             (each arm; the demo's network is the paper's U-Net, so a step costs about a second on the CPU).
     """
 
@@ -144,12 +144,13 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         return {"run": str(run_dir), "checkpoint": str(run_dir / "best.pt")}
 
     def evaluate(ctx: dict[str, Any]) -> dict[str, Any]:
-        ckpt = run_dir / "best.pt"
+        specs = ("disk", "butterworth", "raytrace", "base", f"neural:{run_dir / 'best.pt'}")  # Table 2's columns
+        simulators = [arg for spec in specs for arg in ("--simulator", spec)]
         results = {}
         for name, ds in (("studio", train_ds), ("processed", processed)):
             eout = out / f"evaluate-{name}"
             split = "test" if name == "studio" else _nonempty_split(ds)
-            run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), "--checkpoint", str(ckpt),
+            run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), *simulators,
                      "--max-pairs", str(scale.eval_pairs), "--figures", "1"])
             results[name] = {"out": str(eout), "split": split}
         return results
@@ -162,12 +163,12 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
     def diagnose_base(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-base"
-        run_cli(["diagnose", str(diag_ds), "--model", "base", "--out", str(dout)])
+        run_cli(["diagnose", str(diag_ds), "--simulator", "base", "--out", str(dout)])
         return {"out": str(dout)}
 
     def diagnose_neural(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-neural"
-        run_cli(["diagnose", str(diag_ds), "--model", f"neural:{run_dir / 'best.pt'}", "--out", str(dout),
+        run_cli(["diagnose", str(diag_ds), "--simulator", f"neural:{run_dir / 'best.pt'}", "--out", str(dout),
                  "--neural-steps", str(scale.neural_steps)])
         return {"out": str(dout)}
 
@@ -176,7 +177,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
         write_rgbd_frames(diag_ds, rgbd, scale.rgbd_frames)
         sout = out / "synthesized"
-        run_cli(["synthesize", str(rgbd), str(sout), "--simulator", "neural", "--checkpoint", str(run_dir / "best.pt"),
+        run_cli(["synthesize", str(rgbd), str(sout), "--simulator", f"neural:{run_dir / 'best.pt'}",
                  "--encoding", "linear", "--seed", str(seed)])
         return {"in": str(rgbd), "out": str(sout)}
 
@@ -198,15 +199,15 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         Stage("train", "Short Neural DP Simulator training", train,
               "run `dp5k -v train OUT/studio-train --out OUT/neural_dp`; delete OUT/neural_dp to start over"),
         Stage("evaluate", "Evaluation of every simulator (Table 2)", evaluate,
-              "run `dp5k -v evaluate OUT/studio-train --checkpoint OUT/neural_dp/best.pt`"),
+              "run `dp5k -v evaluate OUT/studio-train --simulator neural:OUT/neural_dp/best.pt` (and the others)"),
         Stage("hidden_effect", "A dataset with a hidden physical effect", hidden,
               "run `dp5k -v studio make-dataset OUT/studio-hidden` with the same arguments"),
         Stage("diagnose_base", "Diagnosis of the physical base model", diagnose_base,
-              "run `dp5k -v diagnose OUT/studio-hidden --model base`"),
+              "run `dp5k -v diagnose OUT/studio-hidden --simulator base`"),
         Stage("diagnose_neural", "Diagnosis of the Neural DP Simulator", diagnose_neural,
-              "run `dp5k -v diagnose OUT/studio-hidden --model neural:OUT/neural_dp/best.pt`"),
+              "run `dp5k -v diagnose OUT/studio-hidden --simulator neural:OUT/neural_dp/best.pt`"),
         Stage("synthesize", "Synthesis of DP pairs from RGBD frames", synthesize,
-              "run `dp5k -v synthesize OUT/rgbd-frames OUT/synthesized`"),
+              "run `dp5k -v synthesize OUT/rgbd-frames OUT/synthesized --simulator neural:OUT/neural_dp/best.pt`"),
         Stage("report", "Report", report, "rerun `dp5k -v demo OUT` (finished stages are reused)", always=True),
     ]
 

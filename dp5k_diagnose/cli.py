@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
+from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
-from neural_dp.config import FinetuneConfig
-
-from .model_spec import ModelSpec
+from dp5k_learn.config import FinetuneConfig
+from neural_dp.registry import SYNTAX, SimulatorSpec
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +33,9 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 
 @click.command("diagnose")
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("--model", default="base", show_default=True, help="base | disk | butterworth | raytrace | neural:CKPT")
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None, help="Report folder (default: DATASET/diagnose-<model>).")
+@click.option("--simulator", default=None, metavar="SPEC", help=f"The simulator to diagnose (default: base): {SYNTAX}.")
+@click.option("--model", default=None, metavar="SPEC", help="Deprecated: --simulator SPEC.")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None, help="Report folder (default: DATASET/diagnose-<simulator>).")
 @click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
               help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
@@ -45,9 +46,9 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
                    "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
-def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int, fit_pairs: str, nominal_noise: str,
-                     neural_steps: int, sharp_f_number: str) -> None:
-    """Fit MODEL on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
+def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out_dir: Path | None, seed: int, fit_pairs: str,
+                     nominal_noise: str, neural_steps: int, sharp_f_number: str) -> None:
+    """Fit the simulator on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
     """
@@ -55,7 +56,11 @@ def diagnose_command(dataset: Path, model: str, out_dir: Path | None, seed: int,
     from .neural_reach import NeuralReachConfig
     from .run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
-    spec = ModelSpec.parse(model)
+    if model is not None:
+        if simulator is not None:
+            raise BadInputError("give --simulator or the older --model, not both", where="--model")
+        warn_deprecated("--model SPEC", "--simulator SPEC")
+    spec = SimulatorSpec.parse(simulator or model or "base")
     try:
         shot_var, read_sigma = (float(v) for v in nominal_noise.split(","))
     except ValueError as exc:

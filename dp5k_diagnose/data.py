@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 
 from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader, Pair
-from neural_dp.batch import DPBatch
-from neural_dp.simulators.base import field_coords
+from dp5k_learn.batch import DPBatch
+from neural_dp.registry import field_coords
 
 
 @dataclass

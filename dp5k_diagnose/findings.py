@@ -9,7 +9,7 @@ from typing import Any
 
 import torch.nn.functional as F
 
-from neural_dp.simulators.base import BaseModel
+from neural_dp.registry import BaseModel
 
 from .data import Sample
 

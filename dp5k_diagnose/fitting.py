@@ -7,7 +7,7 @@ import copy
 
 import torch
 
-from neural_dp.simulators.base import BaseModel, fit_parameters
+from neural_dp.registry import BaseModel, fit_parameters
 
 from .data import Sample
 

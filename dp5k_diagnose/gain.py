@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from dp5k_common.errors import BadInputError
-from neural_dp.metrics import view_metrics
+from dp5k_learn.metrics import view_metrics
 
 from .data import Sample
 

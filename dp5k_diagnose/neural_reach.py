@@ -14,13 +14,13 @@ change that addresses it is multi-scale kernel prediction (``ModelConfig.multisc
    fixed number of steps (extended; :func:`neural_dp.train.finetune`, the training loop's own step);
 3. fine-tunes the unextended checkpoint with the same data, order, optimiser, loss mask and budget
    (control), so the gain is the structure's, not the extra training's;
-4. reports masked PSNR / SSIM / MAE (``neural_dp.metrics``) before / control / extended, per-|CoC|-bin PSNR of
+4. reports masked PSNR / SSIM / MAE (``dp5k_learn.metrics``) before / control / extended, per-|CoC|-bin PSNR of
    all three, the per-bin PSNR gain of extended over control with a bootstrap CI over pairs
    (:func:`dp5k_diagnose.gain.bootstrap_ci`), and writes ``neural_reach.png`` (error vs |CoC|, gain per bin),
    ``neural_reach.json`` and the two fine-tuned checkpoints (``control.pt``, ``extended.pt``; both load with
    ``get_simulator("neural", checkpoint=...)``).
 
-Run it with ``dp5k diagnose DATASET --model neural:CKPT`` (``--neural-steps``); settings: :class:`NeuralReachConfig`.
+Run it with ``dp5k diagnose DATASET --simulator neural:CKPT`` (``--neural-steps``); settings: :class:`NeuralReachConfig`.
 """
 
 from __future__ import annotations
@@ -40,11 +40,9 @@ from torch import Tensor
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import atomic_path, write_json_atomic
-from neural_dp.checkpoint import save_checkpoint
-from neural_dp.config import FinetuneConfig
-from neural_dp.model import extend_multiscale
-from neural_dp.simulators.neural import NeuralDPSimulator
-from neural_dp.train import NEW_PARAMETER_PREFIX, finetune
+from dp5k_learn.checkpoint import save_checkpoint
+from dp5k_learn.config import FinetuneConfig
+from neural_dp.registry import NEW_PARAMETER_PREFIX, NeuralDPSimulator, extend_multiscale, finetune
 
 from .data import Sample, full_samples, load_pairs
 from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics

@@ -18,8 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neural_dp.simulators.base import BaseModel
-from neural_dp.simulators.base.components import Noise
+from neural_dp.registry import BaseModel
+from neural_dp.registry import Noise
 
 from .config import DetectConfig
 from .data import Sample

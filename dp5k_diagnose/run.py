@@ -14,8 +14,7 @@ import torch
 from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.errors import BadInputError
-from neural_dp.simulators.base import BaseModel
-from neural_dp.simulators.base.spec import model_to_spec
+from neural_dp.registry import BaseModel, SimulatorSpec, model_to_spec
 
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
 from .config import DetectConfig, SelectConfig
@@ -24,7 +23,6 @@ from .fitting import fit_base
 from .selection import Selection, drop_cause, model_intervals, select_causes
 from .tiles import masked_mse
 from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics_by_mask
-from .model_spec import ModelSpec
 from .neural_reach import NeuralReachConfig
 
 log = logging.getLogger(__name__)
@@ -44,7 +42,7 @@ class DiagnoseConfig:
         seed: seeds crop positions and the bootstrap.
         detect: the detectors' statistical settings.
         effects: the effects to test (default: the whole vocabulary).
-        neural: the Neural DP extension study's settings (``--model neural:CKPT``); its fine-tuning seed is
+        neural: the Neural DP extension study's settings (``--simulator neural:CKPT``); its fine-tuning seed is
             ``seed``.
         sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
             None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
@@ -405,12 +403,12 @@ def analyse(predict, samples: list[Sample], with_psfs: bool = True) -> dict[str,
     return out
 
 
-def run_diagnose(dataset: str | Path, model: ModelSpec = ModelSpec(), out: str | Path | None = None,
+def run_diagnose(dataset: str | Path, model: SimulatorSpec = SimulatorSpec(), out: str | Path | None = None,
                  cfg: DiagnoseConfig | None = None) -> dict[str, Any]:
     """The whole ``dp5k diagnose``: returns the report.json object and writes DIR/report.{json,md} when ``out``.
 
-    ``model`` is the base model, a peer or a Neural DP checkpoint (:class:`ModelSpec`, parsed from ``--model``);
-    the effect vocabulary is tested on the physical base model in every case (its components are what can be
+    ``model`` is the base model, a peer or a Neural DP checkpoint (:class:`~neural_dp.registry.SimulatorSpec`, from
+    ``--simulator``); the effect vocabulary is tested on the physical base model in every case (its components are what can be
     named and added); for a peer, its own residuals are analysed and its metrics reported beside the base's.
     """
     cfg = cfg or DiagnoseConfig()
@@ -426,7 +424,7 @@ def run_diagnose(dataset: str | Path, model: ModelSpec = ModelSpec(), out: str |
     if diag.extended is not diag.base:
         analysis["after"] = analyse(lambda s: diag.extended.render(s.batch, s.field), held)
     if not model.is_base:
-        peer = model.load_peer()
+        peer = model.load()
         by_mask = {m: {k: float(np.nanmean(getattr(pm, k))) for k in ("psnr", "ssim", "mae")}
                    for m, pm in pair_metrics_by_mask(lambda s: peer(s.batch), held).items()}
         result["model"] = str(model)

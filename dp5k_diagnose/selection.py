@@ -44,14 +44,12 @@ from torch import Tensor
 
 from dp5k_common.effects import EFFECT_NAMES
 from dp5k_common.progress import progress
-from neural_dp.simulators.base import BaseModel
-from neural_dp.simulators.base.components import COMPONENTS, fittable_names
+from neural_dp.registry import COMPONENTS, BaseModel, Linearization, clustered_intervals, fittable_names, get_values, jacobian, lm_fit, set_values
 
 from .config import DetectConfig, SelectConfig
 from .data import Sample
 from .findings import GREY_MAX_COLOUR_CONTRAST, Finding, _finite, colour_contrast, explanation, not_testable
 from .fitting import PSF_NUISANCE, covered_field_box
-from .linearize import Linearization, clustered_intervals, get_values, jacobian, lm_fit, set_values
 from .noise import SharpNoise, measured_noise, noise_sse, noise_tile_sse, sharp_noise, systematic_sse, test_noise
 from .tiles import clustered_delta, effect_test, holm_passed, kept_tiles, tile_mse, tile_sums, unit_sums
 
@@ -748,7 +746,7 @@ def effect_findings(conf: Confirmed, order: list[str], full: BaseModel, screen: 
 
 
 def model_intervals(selection: Selection, fit: Sequence[Sample]) -> dict[str, dict[str, tuple[float, float]]]:
-    """95 % intervals (clustered over pairs, :func:`linearize.clustered_intervals`) of every fitted parameter of
+    """95 % intervals (clustered over pairs, :func:`neural_dp.simulators.base.fit.clustered_intervals`) of every fitted parameter of
     the final model: ``{"base": {...}, <effect>: {...}}``, in each parameter's own units; empty without a cause."""
     lin = selection.lin
     if lin is None:

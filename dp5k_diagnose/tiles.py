@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from scipy import stats
 from torch import Tensor
 
-from neural_dp.simulators.base import BaseModel
+from neural_dp.registry import BaseModel
 
 from .data import Sample
 

@@ -38,7 +38,7 @@ from .projector import ProjectorCalibConfig, calibrate_projector, correspondence
 from .rawimage import dp_views, resize_image
 from .refine import RefineConfig, ViewCache, cached_centroids, cached_view, refine_stereo
 from .session import Session, check_size
-from .triangulate import (CodeView, TriangulationConfig, depth_from_match, match_in_other,
+from .triangulate import (CodeView, TriangulationConfig, camera_px_per_projector_px, depth_from_match, match_in_other,
                           normalised_rays)
 
 
@@ -167,16 +167,6 @@ def decode_camera(session: Session, cam: str, gcfg: GrayCodeConfig) -> tuple[Gra
 
     dec = decode_graycode(load, white.astype(np.float32), black.astype(np.float32), float(full), gcfg)
     return dec, (shape[1], shape[0]), full
-
-
-def camera_px_per_projector_px(view: CodeView) -> float:
-    """Side of one projector pixel of ``view``'s scale in camera pixels: median over the valid pixels of
-    ``1 / sqrt(|det d(u, v)/d(x, y)|)`` of the smoothed codes (below 1: the camera cannot resolve that scale's
-    finest stripes). NaN when no pixel is valid."""
-    a, b, c, d = (view.grads[..., k] for k in range(4))
-    det = np.abs(a * d - b * c)[view.valid & np.isfinite(view.u) & np.isfinite(view.v)]
-    det = det[det > 0]
-    return float(1.0 / np.sqrt(np.median(det))) if det.size else float("nan")
 
 
 def fill_steps_for(view0: CodeView, fill_steps: int, n_scales: int) -> int:

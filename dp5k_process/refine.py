@@ -53,6 +53,7 @@ from .graycode import GrayDecode
 from .triangulate import (
     CentroidMap,
     CodeView,
+    camera_px_per_projector_px,
     centroid_map,
     TriangulationConfig,
     code_view,
@@ -180,8 +181,6 @@ class Matches:
 
 def probe_scale(decs: dict[str, GrayDecode], tri: TriangulationConfig, cache: ViewCache | None = None) -> int:
     """The finest projector scale whose pixel spans at least one cam0 pixel (the coarsest if none)."""
-    from .pipeline import camera_px_per_projector_px  # pipeline imports this module
-
     fp = camera_px_per_projector_px(cached_view(decs, "cam0", 0, tri, cache))
     n = decs["cam0"].cfg.n_scales
     return next((s for s in range(n) if np.isfinite(fp) and fp * (1 << s) >= 1.0), n - 1)

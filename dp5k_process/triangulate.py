@@ -320,6 +320,16 @@ MATCH_BLOCK_PX = 65536
 CPU caches instead of making a dozen full-image arrays per Newton step."""
 
 
+def camera_px_per_projector_px(view: CodeView) -> float:
+    """Side of one projector pixel of ``view``'s scale in camera pixels: median over the valid pixels of
+    ``1 / sqrt(|det d(u, v)/d(x, y)|)`` of the smoothed codes (below 1: the camera cannot resolve that scale's
+    finest stripes). NaN when no pixel is valid."""
+    a, b, c, d = (view.grads[..., k] for k in range(4))
+    det = np.abs(a * d - b * c)[view.valid & np.isfinite(view.u) & np.isfinite(view.v)]
+    det = det[det > 0]
+    return float(1.0 / np.sqrt(np.median(det))) if det.size else float("nan")
+
+
 def match_in_other(ref: CodeView, other: CodeView, cfg: TriangulationConfig = TriangulationConfig(),
                    coarse: CodeView | CentroidMap | None = None, block_px: int = MATCH_BLOCK_PX
                    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:

@@ -6,7 +6,7 @@ effects and diffraction are linear in radiance, so the views are ``V(P) = V(0) +
 binary image and its complement (the Gray-code ``+``/``-`` pairs), ``V_lin(1 - P) = V_lin(1) - V_lin(P)``.
 Of the 46 structured-light projections, black, white and every ``-`` pattern then cost one addition each:
 24 renders per camera instead of 46 (the dark views, the full projector light's views and one per ``+``
-pattern). The result equals a direct render to float32 rounding (tests/studio/test_speedups.py).
+pattern). The result equals a direct render to float32 rounding (tests/studio/test_reference_equivalence.py).
 """
 
 from __future__ import annotations

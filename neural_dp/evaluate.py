@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,17 +31,17 @@ from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import BadInputError, EmptySplitError
 from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
+from dp5k_learn.batch import DPBatch
+from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
+from dp5k_learn.metrics import view_metrics
 
-from .batch import DPBatch
-from .data import CropSpec, DPPairDataset, collate_dp
-from .metrics import view_metrics
+from .simulators.catalog import SimulatorSpec, default_simulators
 from .simulators.interface import DPSimulator
-from .simulators.registry import available_simulators, get_simulator
 
 logger = logging.getLogger(__name__)
 
 TITLES = {"disk": "Translating disk", "butterworth": "Butterworth", "raytrace": "Ray tracing",
-          "base": "Physical base", "neural": "Neural DP"}
+          "base": "Physical base", "neural": "Neural DP", "diagnosed": "Diagnosed"}
 
 
 @dataclass
@@ -58,6 +59,19 @@ def _fit_batches(root: Path, n_pairs: int, crop_px: int, device: torch.device) -
     except EmptySplitError:  # nothing to fit on: the simulators keep their published defaults
         return []
     return [collate_dp([ds[i]]).to(device) for i in range(min(n_pairs, len(ds.ids)))]
+
+
+def column_names(specs: Sequence[SimulatorSpec]) -> list[str]:
+    """Each spec's column: the simulator's name, or the whole spec where two specs share a name (two checkpoints).
+
+    Raises:
+        BadInputError: the same spec twice.
+    """
+    texts = [str(s) for s in specs]
+    if len(set(texts)) < len(texts):
+        raise BadInputError(f"a simulator is named twice: {', '.join(texts)}", where="--simulator")
+    names = [s.name for s in specs]
+    return [s.name if names.count(s.name) == 1 else str(s) for s in specs]
 
 
 def _overrides_fit(sim: DPSimulator) -> bool:
@@ -117,7 +131,7 @@ def save_figure(path: Path, batch: DPBatch, views: dict[str, tuple[Tensor, Tenso
 
 
 def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *, split: str = "test",
-             simulators: list[str] | None = None, checkpoint: str | os.PathLike[str] | None = None,
+             simulators: Sequence[SimulatorSpec | str] | None = None, checkpoint: str | os.PathLike[str] | None = None,
              device: str = "cpu", max_pairs: int = 0, figures: int = 2, fit_pairs: int = 8,
              fit_crop_px: int = 256) -> EvalResult:
     """Compare simulators on one split (see module docstring).
@@ -126,8 +140,10 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         dataset: format-v1 dataset.
         out_dir: output folder (created).
         split: which split to evaluate.
-        simulators: names (default: every available one; ``neural`` only with a checkpoint).
-        checkpoint: the Neural DP checkpoint (``best.pt`` written by ``dp5k train``).
+        simulators: specs, or their text (``disk``, ..., ``neural:CKPT``, ``diagnosed:REPORT.json``); default: the
+            peers, the base model and, with ``checkpoint``, the Neural DP Simulator. Each is a column named by
+            the simulator (its whole spec where two share a name).
+        checkpoint: the Neural DP checkpoint (``best.pt`` written by ``dp5k train``) of a bare ``neural``.
         device: torch device for the simulators.
         max_pairs: evaluate at most this many pairs (0 = all).
         figures: how many pairs get a comparison picture.
@@ -135,7 +151,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
 
     Raises:
         EmptySplitError: the split to evaluate is empty.
-        BadInputError: unknown simulator, ``neural`` requested without a checkpoint.
+        BadInputError: unknown simulator, ``neural`` without a checkpoint, a missing checkpoint or report.
     """
     root, out = Path(dataset), Path(out_dir)
     reader = DatasetReader(root)
@@ -144,15 +160,19 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         ids = ids[:max_pairs]
     if not ids:
         raise EmptySplitError(f"split '{split}' has no pairs to evaluate", where=root / "dataset.json")
-    names = simulators or available_simulators(with_neural=checkpoint is not None)
-    if "neural" in names and checkpoint is None:
-        raise BadInputError("evaluating 'neural' needs a checkpoint (dp5k train, or --checkpoint)", where="evaluate")
+    if simulators:
+        specs = [s if isinstance(s, SimulatorSpec) else SimulatorSpec.parse(s, checkpoint) for s in simulators]
+    else:
+        specs = default_simulators(checkpoint)
+    for spec in specs:
+        spec.check_files()
+    names = column_names(specs)
     dev = torch.device(device)
     sims: dict[str, DPSimulator] = {}
     fitted: dict[str, dict[str, float]] = {}
     fit_batches: list[DPBatch] | None = None
-    for name in names:
-        sim = get_simulator(name, checkpoint if name == "neural" else None).to(dev)
+    for name, spec in zip(names, specs):
+        sim = spec.load().to(dev)
         sim.eval()
         if _overrides_fit(sim):
             if fit_batches is None:
@@ -199,8 +219,9 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     table = markdown_table(means)
     report: dict[str, Any] = {
         "dataset": str(root), "split": split, "pairs": scored, "pairs_without_depth": no_depth, "simulators": names,
-        "checkpoint": None if checkpoint is None else str(checkpoint), "device": str(dev),
-        "metric_definitions": "masked MAE/PSNR/SSIM (neural_dp.metrics), mean of left and right view, mean over pairs",
+        "specs": [str(spec) for spec in specs],
+        "checkpoint": next((str(spec.checkpoint) for spec in specs if spec.is_neural), None), "device": str(dev),
+        "metric_definitions": "masked MAE/PSNR/SSIM (dp5k_learn.metrics), mean of left and right view, mean over pairs",
         "fitted_parameters": fitted, "means": means, "per_pair": per_pair,
     }
     write_json_atomic(out / "metrics.json", report)

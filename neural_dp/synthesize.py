@@ -64,10 +64,10 @@ from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.progress import progress
 from dp5k_common.sharding import RankInfo, rank_info, shard
 from dp5k_common.transfer import srgb_to_linear
+from dp5k_learn.batch import DPBatch
+from dp5k_learn.distributed import resolve_device
 
-from .batch import DPBatch
-from .distributed import resolve_device
-from .simulators.registry import get_simulator
+from .simulators.catalog import SimulatorSpec
 
 logger = logging.getLogger(__name__)
 
@@ -83,7 +83,10 @@ class SynthConfig:
     """How frames become DP pairs."""
 
     simulator: str = "neural"
+    """A simulator spec (:class:`~neural_dp.simulators.catalog.SimulatorSpec`): ``disk``, ..., ``neural:CKPT``,
+    ``diagnosed:REPORT.json``."""
     checkpoint: str | None = None
+    """Completes a bare ``neural`` (the older form of ``neural:CKPT``)."""
     f_numbers: tuple[float, ...] = PAPER_F_NUMBERS
     """One value = fixed; several = one drawn per frame."""
     focus_mm: float | None = None
@@ -236,10 +239,13 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         "world_size": N}``; written / skipped / failed count this rank's share, pairs the whole dataset.
 
     Raises:
-        BadInputError: ``in_dir`` has no frame folders, or bad options.
+        BadInputError: a bad simulator spec or a missing checkpoint / report (checked first), ``in_dir`` has no frame
+            folders, or bad options.
         PartialFailureError: some frames of this rank's share failed (the others were written; the index
             lists every pair written by any rank).
     """
+    spec = SimulatorSpec.parse(cfg.simulator, cfg.checkpoint)
+    spec.check_files()
     src, out = Path(in_dir), Path(out_dir)
     if not src.is_dir():
         raise BadInputError("input folder not found", where=src)
@@ -250,10 +256,10 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         raise BadInputError(f"f-numbers must be positive, got {cfg.f_numbers}", where="synthesize")
     info = rank_info()
     with _rank_group(info):
-        summary = _synthesize_share(out, frames, shard(frames, info), info, cfg)
+        summary = _synthesize_share(out, frames, shard(frames, info), info, spec, cfg)
         _wait_for_all_ranks(info)
         if info.is_main:
-            _write_index(out, frames, _split_of(frames, cfg.seed), cfg)
+            _write_index(out, frames, _split_of(frames, cfg.seed), spec, cfg)
         _wait_for_all_ranks(info)
     summary["pairs"] = len(DatasetReader(out).ids())
     failed = summary["failed"]
@@ -267,10 +273,11 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
     return summary
 
 
-def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], info: RankInfo, cfg: SynthConfig) -> dict[str, Any]:
+def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], info: RankInfo, spec: SimulatorSpec,
+                      cfg: SynthConfig) -> dict[str, Any]:
     """Write the pairs of this rank's frames ``mine`` that are not on disk yet; rank 0 keeps the index current."""
-    device = str(resolve_device(cfg.device, int(os.environ.get("LOCAL_RANK", "0"))))
-    sim = get_simulator(cfg.simulator, cfg.checkpoint).to(device)
+    device = str(resolve_device(cfg.device, info.local_rank))
+    sim = spec.load().to(device)
     sim.eval()
     out.mkdir(parents=True, exist_ok=True)
     split_of = _split_of(frames, cfg.seed)
@@ -297,7 +304,7 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
                 written += 1
         pending.clear()
         if info.is_main:  # one writer of dataset.json; the other ranks' pairs appear in it as they land
-            _write_index(out, frames, split_of, cfg)
+            _write_index(out, frames, split_of, spec, cfg)
 
     desc = f"synthesize (rank {info.rank}/{info.world_size})" if info.enabled else "synthesize"
     for folder in progress(todo, desc=desc, unit="frame"):
@@ -317,7 +324,7 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
             params = PairParams(
                 pair_id=pair_id(frame.name), scene=frame.name, camera="synth", f_number=n, focus_distance_mm=focus,
                 focal_length_mm=f_thin, pixel_pitch_mm=pitch, focus_point_px=point, image_size=(W, H),
-                extra={"synthetic": True, "sharp_f_number": 0.0, "simulator": cfg.simulator, "source_frame": frame.name,
+                extra={"synthetic": True, "sharp_f_number": 0.0, "simulator": str(spec), "source_frame": frame.name,
                        "pinhole_fx_px": frame.fx_px, "sensor_scale": scale, **cfg.extra},
             )
             pending.append((frame, params, coc))
@@ -406,12 +413,12 @@ def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: s
     ).to(device)
 
 
-def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], cfg: SynthConfig) -> None:
+def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], spec: SimulatorSpec, cfg: SynthConfig) -> None:
     """dataset.json listing, in frame order, every frame whose pair is on disk, in its split."""
     splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
     for f in frames:
         pid = pair_id(f.name)
         if (out / "pairs" / pid / "params.json").is_file():
             splits[split_of[f.name]].append(pid)
-    write_index(out, splits, source="dp5k synthesize", simulator=cfg.simulator,
+    write_index(out, splits, source="dp5k synthesize", simulator=str(spec),
                 synth_config=json.loads(json.dumps({k: v for k, v in cfg.__dict__.items() if k != "extra"}, default=str)))

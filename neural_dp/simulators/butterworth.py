@@ -31,7 +31,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..batch import DPBatch
+from dp5k_learn.batch import DPBatch
+
 from .interface import DPSimulator
 from .peer_layers import render_layered
 

@@ -20,7 +20,6 @@ from .base import BaseModel
 from .base.spec import model_from_spec
 
 SPEC_KEY = "extended_model_spec"
-PREFIX = "diagnosed:"
 
 
 class DiagnosedSimulator(BaseModel):

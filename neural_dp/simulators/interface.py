@@ -6,7 +6,7 @@ from typing import ClassVar
 
 from torch import Tensor, nn
 
-from ..batch import DPBatch
+from dp5k_learn.batch import DPBatch
 
 
 class DPSimulator(nn.Module):

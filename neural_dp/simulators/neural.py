@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 from dp5k_common.errors import BadInputError
+from dp5k_learn.batch import DPBatch
 
-from ..batch import DPBatch
 from ..model import ModelConfig, UNetKPN, normalize_depth
 from .interface import DPSimulator
 

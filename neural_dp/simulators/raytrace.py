@@ -45,8 +45,8 @@ import torch
 from torch import Tensor
 
 from dp5k_common.errors import BadInputError
+from dp5k_learn.batch import DPBatch
 
-from ..batch import DPBatch
 from .interface import DPSimulator
 
 

@@ -11,7 +11,7 @@ import torch
 
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 from dp5k_testing.torchrun import run_torchrun
-from neural_dp.checkpoint import load_checkpoint
+from dp5k_learn.checkpoint import load_checkpoint
 
 
 def _torchrun(ds: Path, out: Path, epochs: int) -> subprocess.CompletedProcess[str]:

@@ -28,7 +28,7 @@ def test_study_writes_tables_3_and_4(tmp_path: Path) -> None:
                             effects={"lr_gain_imbalance": 0.5})
     out = tmp_path / "study"
     res = CliRunner().invoke(main, ["-q", "study", "downstream", str(tmp_path / "rgbd"), str(measured), "--out", str(out),
-                                    "--simulators", "disk,base", *TINY])
+                                    "--simulator", "disk", "--simulator", "base", *TINY])
     assert res.exit_code == 0, res.output
     t3 = json.loads((out / "table3.json").read_text())
     t4 = json.loads((out / "table4.json").read_text())

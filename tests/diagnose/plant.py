@@ -14,7 +14,7 @@ import torch
 from dp5k_common.dataset import PairParams, write_index, write_pair
 from dp5k_common.optics import coc_diameter_px
 from neural_dp.simulators.base.components import COMPONENTS
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.simulators.base import BaseModel
 
 

@@ -15,7 +15,7 @@ from dp5k_diagnose import findings as F
 from dp5k_diagnose import noise as N
 from dp5k_diagnose.config import DetectConfig, SelectConfig
 from dp5k_diagnose.data import Sample
-from dp5k_diagnose.linearize import clustered_intervals, lm_fit
+from neural_dp.registry import clustered_intervals, lm_fit
 from neural_dp.simulators.base import BaseModel, field_coords
 from neural_dp.simulators.base.components import FocusOffset, LRGainImbalance
 from tests.diagnose.test_detect_units import noisy_views, samples, scene

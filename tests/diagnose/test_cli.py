@@ -18,8 +18,13 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     runner = CliRunner()
     res = runner.invoke(main, ["diagnose", str(tmp_path / "nothing")])
     assert res.exit_code == 4 and "dataset folder not found" in res.output
-    res = runner.invoke(main, ["diagnose", str(tmp_path), "--model", "nonsense"])
-    assert res.exit_code == 3 and "unknown model" in res.output
+    res = runner.invoke(main, ["diagnose", str(tmp_path), "--simulator", "nonsense"])
+    assert res.exit_code == 3 and "unknown simulator 'nonsense'" in res.output
+    res = runner.invoke(main, ["diagnose", str(tmp_path), "--model", "nonsense"])  # the older flag still parses the spec
+    assert res.exit_code == 3 and "--model SPEC is deprecated; use --simulator SPEC" in res.output
+    assert "unknown simulator 'nonsense'" in res.output
+    res = runner.invoke(main, ["diagnose", str(tmp_path), "--model", "base", "--simulator", "base"])
+    assert res.exit_code == 3 and "not both" in res.output
     for bad in ("2e-5", "a,b", "-1,0.001"):
         res = runner.invoke(main, ["diagnose", str(tmp_path), "--nominal-noise", bad])
         assert res.exit_code == 3 and "--nominal-noise" in res.output, (bad, res.output)
@@ -62,17 +67,10 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
         assert (out / fig).is_file() and (out / fig).stat().st_size > 1000
 
 
-def test_model_names_are_parsed_once_into_a_typed_spec(tmp_path: Path) -> None:
-    from dp5k_common.errors import BadInputError
-    from dp5k_diagnose.model_spec import ModelSpec
+def test_the_default_report_folder_is_named_for_the_simulator(tmp_path: Path) -> None:
+    from neural_dp.registry import SimulatorSpec
 
-    assert ModelSpec.parse("base") == ModelSpec() and ModelSpec().is_base
-    assert ModelSpec.parse("butterworth").kind == "butterworth"
-    spec = ModelSpec.parse(f"neural:{tmp_path / 'a.pt'}")
-    assert spec.is_neural and spec.checkpoint == tmp_path / "a.pt" and str(spec) == f"neural:{tmp_path / 'a.pt'}"
-    assert "/" not in spec.folder_name() and ":" not in spec.folder_name()
-    for bad in ("neural", "neural:", "Base", "disk:x"):
-        with pytest.raises(BadInputError):
-            ModelSpec.parse(bad)
-    with pytest.raises(BadInputError, match="checkpoint not found"):
-        spec.check_files()
+    spec = SimulatorSpec.parse(f"neural:{tmp_path / 'a.pt'}")
+    assert "/" not in spec.folder_name() and ":" not in spec.folder_name() and spec.folder_name().startswith("neural_")
+    res = CliRunner().invoke(main, ["diagnose", str(tmp_path), "--simulator", str(spec), "--fit-pairs", "6"])
+    assert res.exit_code == 3 and "Neural DP checkpoint not found" in res.output and "a.pt" in res.output

@@ -14,7 +14,7 @@ from dp5k_diagnose import noise as detect_noise
 from dp5k_diagnose import tiles
 from dp5k_diagnose.config import DetectConfig
 from dp5k_diagnose.data import Sample, predictable_mask
-from dp5k_diagnose.linearize import Linearization, jacobian, lm_fit
+from neural_dp.registry import Linearization, jacobian, lm_fit
 from neural_dp.simulators.base import BaseModel, field_coords
 from tests.neural_dp.test_base_model import make_batch
 

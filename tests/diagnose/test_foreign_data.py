@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from dp5k_diagnose.model_spec import ModelSpec
+from neural_dp.registry import SimulatorSpec
 from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
 from dp5k_testing.foreign_dp import write_dataset
 
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.slow
 def test_diagnose_names_an_effect_planted_by_another_renderer(tmp_path: Path, effect: str) -> None:
     ds = tmp_path / "ds"
     write_dataset(ds, effect, 1.0, scenes=12, size=(192, 128), seed=0, sampling="box")
-    res = run_diagnose(ds, ModelSpec(), tmp_path / "report", DiagnoseConfig(fit_pairs=6))
+    res = run_diagnose(ds, SimulatorSpec(), tmp_path / "report", DiagnoseConfig(fit_pairs=6))
     assert res["base_params"]["pixel_box"] > 0.8  # the data's PSFs are box-sampled
     assert res["cause"] == effect
     g = res["gain"]

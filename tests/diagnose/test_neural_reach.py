@@ -11,11 +11,11 @@ import torch
 
 from dp5k_studio.dataset import make_dataset
 from dp5k_common.dataset import DatasetReader
-from dp5k_diagnose.model_spec import ModelSpec
 from dp5k_diagnose.neural_reach import NeuralReachConfig, diagnose_neural, format_table
-from neural_dp.config import DataConfig, FinetuneConfig, OptimConfig, TrainConfig
+from dp5k_learn.config import DataConfig, FinetuneConfig, OptimConfig
+from neural_dp.config import TrainConfig
 from neural_dp.model import ModelConfig
-from neural_dp.simulators.registry import get_simulator
+from neural_dp.registry import SimulatorSpec, get_simulator
 from neural_dp.train import train
 
 
@@ -76,13 +76,13 @@ def test_diagnose_neural_extends_exactly_and_reports_gain_per_coc_bin(trained: t
 
 
 def test_cli_diagnose_neural_checkpoint_reports_its_extension(trained: tuple[Path, Path], tmp_path: Path) -> None:
-    """``dp5k diagnose DS --model neural:CKPT`` carries the structural extension's per-|CoC| gains into the report."""
+    """``dp5k diagnose DS --simulator neural:CKPT`` carries the structural extension's per-|CoC| gains into the report."""
     from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
 
     torch.set_num_threads(1)
     ds, ckpt = trained
     out = tmp_path / "diag"
-    res = run_diagnose(ds, ModelSpec.parse(f"neural:{ckpt}"), out,
+    res = run_diagnose(ds, SimulatorSpec.parse(f"neural:{ckpt}"), out,
                        DiagnoseConfig(fit_pairs=2, det_pairs=2, n_boot=100, neural=NeuralReachConfig(finetune=FinetuneConfig(steps=2))))
     saved = json.loads((out / "report.json").read_text())
     ne = saved["neural_extension"]
@@ -100,6 +100,6 @@ def test_cli_diagnose_neural_missing_checkpoint_is_a_one_line_error(trained: tup
     from dp5k_cli import main
 
     ds, _ = trained
-    res = CliRunner().invoke(main, ["diagnose", str(ds), "--model", f"neural:{tmp_path / 'nope.pt'}", "--out", str(tmp_path / "o")])
+    res = CliRunner().invoke(main, ["diagnose", str(ds), "--simulator", f"neural:{tmp_path / 'nope.pt'}", "--out", str(tmp_path / "o")])
     assert res.exit_code == 3 and "checkpoint not found" in res.output and "nope.pt" in res.output
     assert not (tmp_path / "o" / "report.json").exists()

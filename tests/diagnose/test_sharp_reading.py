@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from dp5k_diagnose.data import Sample, read_sharp_at
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 import dp5k_studio.dataset as studio
 
 

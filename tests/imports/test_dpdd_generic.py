@@ -50,7 +50,7 @@ def test_dpdd_pairs_have_views_but_no_depth(studio: DatasetReader, tmp_path: Pat
     code, out = _run("check", str(tmp_path / "ds"))  # the format's reader accepts pairs without valid depth
     assert code == 0, out
     # the simulators render from depth: evaluate says so in one line instead of writing NaN metrics
-    code, out = _run("evaluate", str(tmp_path / "ds"), "--out", str(tmp_path / "ev"), "--simulators", "disk")
+    code, out = _run("evaluate", str(tmp_path / "ds"), "--out", str(tmp_path / "ev"), "--simulator", "disk")
     assert code == 3 and "no pair of split 'test' has valid depth" in out, out
     assert not (tmp_path / "ev" / "metrics.json").exists()
     code, out = _run("import", "dpdd", str(tmp_path), str(tmp_path / "ds18"), "--f-number", "1.8")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.simulators.base import BaseModel, PSFShape, field_coords, fit_parameters, half_disc_kernels
 
 
@@ -138,7 +138,7 @@ def test_fit_recovers_softness_and_gain() -> None:
 
 
 def test_registry_serves_the_base_model() -> None:
-    from neural_dp.simulators.registry import get_simulator
+    from neural_dp.registry import get_simulator
 
     sim = get_simulator("base")
     assert isinstance(sim, BaseModel) and sim.name == "base"

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dp5k_common.errors import BadInputError
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.simulators.base import BaseModel
 from neural_dp.simulators.base.components import COMPONENTS
 from neural_dp.simulators.base.spec import model_from_spec, model_to_spec

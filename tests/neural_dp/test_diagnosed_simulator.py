@@ -13,7 +13,7 @@ from dp5k_cli import main
 from dp5k_common.dataset import DatasetReader
 from dp5k_demo.rgbd import write_rgbd_frames
 from dp5k_testing.tiny_dataset import make_tiny_dataset
-from neural_dp.simulators.registry import get_simulator
+from neural_dp.registry import get_simulator
 from tests.diagnose.plant import make_planted_dataset
 
 SYNTH = ["--f-number", "2.8", "--focus-mm", "1500", "--no-sensor-adjust", "--encoding", "linear", "--seed", "1"]

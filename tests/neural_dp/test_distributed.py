@@ -15,7 +15,7 @@ import torch
 from dp5k_common.dataset import DatasetReader
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 from dp5k_testing.torchrun import run_torchrun
-from neural_dp.checkpoint import load_checkpoint
+from dp5k_learn.checkpoint import load_checkpoint
 from neural_dp.synthesize import SynthConfig, synthesize
 
 from .test_synthesize import _frames

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from dp5k_cli import main
 from dp5k_common.errors import DatasetFormatError, EmptySplitError
-from neural_dp.data import DPPairDataset
+from dp5k_learn.data import DPPairDataset
 from neural_dp.evaluate import _fit_batches
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import torch
 
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.model import ModelConfig, UNetKPN, normalize_depth
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
 

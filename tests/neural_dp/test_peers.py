@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.simulators.butterworth import ButterworthParams, butterworth_highpass, butterworth_psf, butterworth_ring
 from neural_dp.simulators.disk import translating_disk_psf
 from neural_dp.simulators.peer_layers import render_layered
 from neural_dp.simulators.raytrace import render_raytrace
-from neural_dp.simulators.registry import PEERS, get_simulator
+from neural_dp.registry import PEERS, get_simulator
 
 
 def _centroid_x(h: np.ndarray) -> float:

@@ -20,7 +20,7 @@ import pytest
 from dp5k_studio.dataset import make_dataset
 from neural_dp.config import load_config
 from neural_dp.evaluate import evaluate
-from neural_dp.simulators.registry import PEERS
+from neural_dp.registry import PEERS
 from neural_dp.train import train
 
 EFFECTS = {"lr_gain_imbalance": 2.0, "disparity_scale": 1.0}

@@ -102,7 +102,7 @@ def test_base_simulator_reads_rgbd_frames_as_all_in_focus(tmp_path: Path) -> Non
     (written pairs say sharp_f_number 0, and the batches synthesize renders carry it)."""
     import torch
 
-    from neural_dp.batch import DPBatch
+    from dp5k_learn.batch import DPBatch
     from neural_dp.simulators.base import BaseModel
 
     _frames(tmp_path / "in", n=1)
@@ -119,7 +119,7 @@ def test_base_simulator_reads_rgbd_frames_as_all_in_focus(tmp_path: Path) -> Non
     assert float((written - as_radiance).abs().max()) < 1e-3
     assert float((written - as_f22_frame).abs().max()) > 1e-2
     # training and evaluation batches (collate_dp) carry the same key
-    from neural_dp.data import DPPairDataset, collate_dp
+    from dp5k_learn.data import DPPairDataset, collate_dp
 
     split = next(name for name in reader.splits if reader.ids(name))
     item_batch = collate_dp([DPPairDataset(tmp_path / "out", split)[0]])

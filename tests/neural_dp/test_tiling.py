@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
 from neural_dp.model import ModelConfig, UNetKPN
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
 

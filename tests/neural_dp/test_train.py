@@ -11,9 +11,9 @@ from click.testing import CliRunner
 
 from dp5k_cli import main
 from dp5k_common.errors import BadInputError
-from neural_dp.checkpoint import load_checkpoint
+from dp5k_learn.checkpoint import load_checkpoint
 from neural_dp.config import load_config
-from neural_dp.simulators.registry import get_simulator
+from neural_dp.registry import get_simulator
 from neural_dp.train import train
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 
@@ -53,9 +53,9 @@ def test_train_save_interrupt_resume_is_exact_then_evaluate(tiny: Path, tmp_path
     sim = get_simulator("neural", tmp_path / "straight" / "best.pt")
     assert sim.name == "neural"
     out = tmp_path / "eval"
-    res = CliRunner().invoke(main, ["-q", "evaluate", str(tiny), "--out", str(out), "--checkpoint",
-                                    str(tmp_path / "straight" / "best.pt"),
-                                    "--simulators", "disk,butterworth,raytrace,neural", "--figures", "1"])
+    res = CliRunner().invoke(main, ["-q", "evaluate", str(tiny), "--out", str(out), "--simulator", "disk", "--simulator",
+                                    "butterworth", "--simulator", "raytrace", "--simulator",
+                                    f"neural:{tmp_path / 'straight' / 'best.pt'}", "--figures", "1"])
     assert res.exit_code == 0, res.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["means"]) == {"disk", "butterworth", "raytrace", "neural"}
@@ -74,7 +74,7 @@ def test_cli_train_default_out_and_evaluate_finds_its_checkpoint(tmp_path: Path)
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
     assert (tmp_path / "ds-neural_dp" / "best.pt").is_file()
-    res = CliRunner().invoke(main, ["-q", "evaluate", str(ds), "--simulators", "disk,neural", "--figures", "0"])
+    res = CliRunner().invoke(main, ["-q", "evaluate", str(ds), "--simulator", "disk", "--simulator", "neural", "--figures", "0"])
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "ds-eval-test" / "metrics.json").read_text())["checkpoint"].endswith("best.pt")
 

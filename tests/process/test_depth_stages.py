@@ -159,7 +159,8 @@ def test_valid_median_chunks_equal_whole():
 def test_fill_steps_follow_the_camera_resolution():
     """Eq. 3's 3 steps (scales 1, 1/2, 1/4) where a projector pixel spans >= 1 camera pixel; one coarser step
     per scale finer than a camera pixel (up to the 4 decoded scales)."""
-    from dp5k_process.pipeline import camera_px_per_projector_px, fill_steps_for
+    from dp5k_process.pipeline import fill_steps_for
+    from dp5k_process.triangulate import camera_px_per_projector_px
     from dp5k_process.triangulate import code_view
 
     H, W = 60, 80

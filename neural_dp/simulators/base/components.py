@@ -42,7 +42,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neural_dp.batch import DPBatch
+from dp5k_learn.batch import DPBatch
+
 from .field import field_r2
 from .model import Component
 from .psf import PSFShape

@@ -9,7 +9,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from ...batch import DPBatch
+from dp5k_learn.batch import DPBatch
+
 from ..interface import DPSimulator
 from .field import field_coords, field_r2
 from .fit import fit_parameters

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ...metrics import gaussian_window
+from dp5k_learn.metrics import gaussian_window
 
 __all__ = ["PSFShape", "half_disc_kernels", "full_disc_kernels", "stack_centred"]
 

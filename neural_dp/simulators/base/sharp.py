@@ -9,8 +9,8 @@ import torch
 from torch import Tensor
 
 from dp5k_common.dataset import SHARP_F_NUMBER
+from dp5k_learn.batch import DPBatch
 
-from ...batch import DPBatch
 from .psf import full_disc_kernels
 from .render import RenderConfig, render_layers
 

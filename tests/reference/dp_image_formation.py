@@ -1,8 +1,11 @@
-"""Today's (2026-11-24) studio renderers, frozen as the reference of the equivalence tests (issue 22 target 6).
+"""The studio's Dual Pixel image formation, the reference: layered, occlusion-aware rendering of both DP views from
+radiance and depth, with the physical effects of :mod:`dp5k_studio.effects`.
 
-The optimised paths in ``dp5k_studio`` (the cached depth plan of ``dp_optics.plan_dp``, the sliced sensor
-mosaic, the pinhole radiance) must reproduce these to float noise. Copied unchanged from the code before
-the optimisation; only used by ``tests/studio/test_speedups.py``. Slow by design: do not optimise.
+A readable version of :func:`dp5k_studio.render_dp`: every call bins the signed CoC into layers, splats each
+layer's sources and blurs it with its half-aperture kernels (on a pyramid level for large CoCs), then composites
+front to back. The package's version (a depth plan of :func:`dp5k_studio.dp_optics.plan_dp` computed once and
+reused for every radiance image) must render the same views to float noise
+(``tests/studio/test_reference_equivalence.py``). Slow by design: do not optimise it. Not a test module.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ from dp5k_studio.dp_optics import (GEOM_STEP, LOWRES_RADIUS_PX, OCCLUDE_MIN_PX, 
                                    SMALL_STEP_PX, DPRender, LensSetting, _commit, _conv, _occludes, _pyr_down,
                                    _pyr_up, apply_view_effects, coc_channels_px, left_kernel)
 from dp5k_studio.effects import EffectSet
-from dp5k_studio.sensor import DEFAULT_SENSOR, SensorModel
 
 F32 = NDArray[np.float32]
 
@@ -314,91 +316,3 @@ def _composite(sources: _Sources, layers: _Layers, halves: tuple[str, ...], eff:
     P = sources.pad
     crop = (slice(P, H - P), slice(P, W - P))
     return {hname: acc[hname][crop] / np.maximum(cov_acc[hname][crop], 1e-6) for hname in halves}
-
-
-def bayer_channel_index(H: int, W: int) -> NDArray[np.int8]:
-    """(H, W) channel of each RGGB site: 0 = R at (even, even), 1 = G, 2 = B at (odd, odd)."""
-    yy, xx = np.mgrid[0:H, 0:W]
-    return np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1)).astype(np.int8)
-
-
-def mosaic(rgb: NDArray[np.floating]) -> NDArray[np.float64]:
-    """(H, W, 3) -> (H, W) RGGB mosaic (each site keeps its own channel)."""
-    H, W = rgb.shape[:2]
-    ch = bayer_channel_index(H, W)
-    return np.take_along_axis(np.asarray(rgb, dtype=np.float64), ch[:, :, None].astype(np.int64), axis=2)[:, :, 0]
-
-
-def expose_raw(
-    left_rgb: NDArray[np.floating],
-    right_rgb: NDArray[np.floating],
-    f_number: float,
-    shutter_s: float,
-    iso: int,
-    rng: np.random.Generator,
-    sensor: SensorModel = DEFAULT_SENSOR,
-    shot_var_factor: float = 1.0,
-    read_sigma_factor: float = 1.0,
-) -> tuple[NDArray[np.uint16], NDArray[np.uint16]]:
-    """Sample a Dual Pixel RAW from the two photodiodes' radiance.
-
-    Args:
-        left_rgb, right_rgb: (H, W, 3) radiance reaching each photodiode (each about half the light).
-        f_number, shutter_s, iso: exposure.
-        rng: random generator (shot and read noise).
-        sensor: sensor constants.
-        shot_var_factor: >1 inflates shot-noise variance (the ``noise`` effect), keeping the mean.
-        read_sigma_factor: >1 inflates read noise.
-
-    Returns:
-        ``(main, aux)`` uint16 (H, W) RGGB frames, clipped to [0, white_level].
-    """
-    if not (f_number > 0 and shutter_s > 0):
-        raise BadInputError(f"need f-number > 0 and shutter > 0 s, got N={f_number}, t={shutter_s}")
-    qe = np.asarray(sensor.qe_rgb)
-    scale = sensor.q_e_per_s * shutter_s / (f_number**2)
-    g = sensor.gain_e_per_dn(iso)
-    sig = sensor.read_sigma_dn(iso) * read_sigma_factor
-    elec = []
-    for view in (left_rgb, right_rgb):
-        lam = np.maximum(mosaic(np.asarray(view) * qe[None, None, :]) * scale, 0.0)
-        k = float(shot_var_factor)
-        e = rng.poisson(lam / k).astype(np.float64) * k if k != 1.0 else rng.poisson(lam).astype(np.float64)
-        elec.append(e)
-    e_l, e_r = elec
-    H, W = e_l.shape
-    main = sensor.black_level + (e_l + e_r) / g + rng.normal(0.0, sig, (H, W))
-    aux = sensor.black_level + e_l / g + rng.normal(0.0, sig, (H, W))
-    to16 = lambda a: np.clip(np.rint(a), 0, sensor.white_level).astype(np.uint16)  # noqa: E731
-    return to16(main), to16(aux)
-
-
-class ReferenceGeometry:
-    """Today's ``ViewGeometry.radiance`` / ``hidden_radiance`` around a :class:`~dp5k_studio.render.ViewGeometry`."""
-
-    def __init__(self, geom) -> None:
-        self.__dict__.update(geom.__dict__)
-
-    def hidden_radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32] | None:
-        """(H, W, 3) radiance of the hidden surfaces under a projector image (None if not computed)."""
-        if self.hidden is None:
-            return None
-        h = self.hidden
-        light = np.repeat(h["base_light"][:, None], 3, axis=1)
-        if pattern is not None:
-            m = h["proj_index"] >= 0
-            pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
-            light[m] += pat[h["proj_index"][m]] * h["proj_gain"][m][:, None]
-        return (h["albedo"] * light).reshape(self.height, self.width, 3).astype(np.float32)
-
-    def radiance(self, pattern: NDArray[np.float32] | None) -> NDArray[np.float32]:
-        """(H, W, 3) float32 radiance under a projector image ((Hp, Wp[, 3]) in [0, 1]) or None (dark)."""
-        light = np.repeat(self.base_light[:, None], 3, axis=1)
-        if pattern is not None:
-            m = self.proj_index >= 0
-            pat = pattern.reshape(pattern.shape[0] * pattern.shape[1], -1)
-            val = pat[self.proj_index[m]]
-            light[m] += val * self.proj_gain[m][:, None]
-        rad = self.albedo * light
-        s = self.ss
-        return rad.reshape(self.height, s, self.width, s, 3).mean(axis=(1, 3), dtype=np.float32)

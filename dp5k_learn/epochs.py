@@ -1,8 +1,9 @@
 """The epoch loop every trained network of dp5k shares: resume, steps, validation, best/last checkpoints, history.
 
-``dp5k train`` (the Neural DP Simulator, :mod:`neural_dp.train`) and ``dp5k deblur train`` (the DP deblurring
-network, :mod:`dp5k_deblur.train`) both run :func:`run_epochs`; only what one optimiser step and one validation
-do differs, and the caller passes those in. It writes into ``out``:
+``dp5k train`` (the Neural DP Simulator, ``neural_dp.train``) and ``dp5k deblur train`` (the DP deblurring
+network, ``dp5k_deblur.train``) both run :func:`run_epochs` over a :class:`~dp5k_learn.training.TrainingRun`;
+only their network's forward pass, loss and validation score differ, and the caller passes those in. It writes
+into ``out``:
 
 * ``config.json``: the resolved configuration;
 * ``last.pt``: everything needed to resume, rewritten atomically after every epoch;
@@ -10,7 +11,7 @@ do differs, and the caller passes those in. It writes into ``out``:
 * ``history.json``: per-epoch loss, validation metrics, learning rate and throughput.
 
 The data and dropout of every epoch are seeded by ``(seed, epoch, rank)``, so a resumed run reproduces an
-uninterrupted one. Checkpoint layout: :mod:`neural_dp.checkpoint`.
+uninterrupted one. Checkpoint layout: :mod:`dp5k_learn.checkpoint`.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch.utils.data import DataLoader, DistributedSampler
 
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import write_json_atomic
@@ -32,7 +32,7 @@ from dp5k_common.progress import progress
 
 from . import distributed as D
 from .checkpoint import load_checkpoint, save_checkpoint
-from .data import DPPairDataset
+from .training import Forward, Loss, TrainingRun
 
 logger = logging.getLogger(__name__)
 
@@ -51,40 +51,31 @@ class TrainResult:
 
 @dataclass
 class EpochLoop:
-    """One training run's parts, built by the caller.
+    """What the caller's network adds to a :class:`~dp5k_learn.training.TrainingRun`.
 
     Attributes:
-        module: the network whose ``state_dict`` is checkpointed (not its DDP wrapper).
-        opt, sched: Adam and its per-step schedule (``sched.T_max`` is reset to ``epochs * len(loader)``).
-        train_ds: the training dataset (its ``set_epoch`` selects each epoch's crops).
-        loader, sampler: the DataLoader over ``train_ds`` and its DistributedSampler.
-        step: ``step(batch, step_index) -> loss`` runs one optimiser step on a batch already on the device.
+        run: the run's parts (:func:`~dp5k_learn.training.build_run`); ``run.sched.T_max`` is reset to
+            ``epochs * len(loader)``, and ``run.train_ds.set_epoch`` selects each epoch's crops.
+        forward, loss: the network's forward pass and training loss (:func:`~dp5k_learn.training.optimiser_step`).
         validate: ``validate() -> {"ssim", "psnr", "mae"}``, the same numbers on every process.
         model_config: the network's config as a dict (a resume refuses a different one).
         config: the whole run's config as a dict (stored in each checkpoint).
-        epochs: total epochs of the run.
-        seed: the run's seed.
         defaults: ``model_config`` keys added since older checkpoints were written, at their defaults.
     """
 
-    module: torch.nn.Module
-    opt: torch.optim.Optimizer
-    sched: torch.optim.lr_scheduler.CosineAnnealingLR
-    train_ds: DPPairDataset
-    loader: DataLoader
-    sampler: DistributedSampler
-    step: Callable[[Any, int], torch.Tensor]
+    run: TrainingRun
+    forward: Forward
+    loss: Loss
     validate: Callable[[], dict[str, float]]
     model_config: dict[str, Any]
     config: dict[str, Any]
-    epochs: int
-    seed: int
     defaults: dict[str, Any] = field(default_factory=dict)
 
 
-def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on_fresh_start: Callable[[], None] | None = None,
+def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Callable[[], None] | None = None,
                on_epoch_end: Callable[[int, dict[str, float]], None] | None = None, desc: str = "train") -> TrainResult:
-    """Train ``loop.module`` for ``loop.epochs`` epochs (or resume from ``out/last.pt``), checkpointing every epoch.
+    """Train ``loop.run.module`` for ``loop.run.epochs`` epochs (or resume from ``out/last.pt``), checkpointing every
+    epoch.
 
     Args:
         on_fresh_start: called once when no checkpoint is resumed (data-driven initialisation).
@@ -93,9 +84,10 @@ def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on
     Raises:
         BadInputError: ``last.pt`` was written with another model config.
     """
-    device = info.device
-    steps_per_epoch = len(loop.loader)
-    loop.sched.T_max = max(1, loop.epochs * steps_per_epoch)
+    run = loop.run
+    info, device = run.rank, run.device
+    steps_per_epoch = len(run.loader)
+    run.sched.T_max = max(1, run.epochs * steps_per_epoch)
     start_epoch, step = 0, 0
     best_ssim, best_epoch = -math.inf, -1
     history: list[dict[str, float]] = []
@@ -108,10 +100,10 @@ def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on
         if saved_model != loop.model_config:
             raise BadInputError("the checkpoint's model config differs from this run's; use another --out or the same config",
                                 where=last_path)
-        loop.module.load_state_dict(state["model"])
-        loop.opt.load_state_dict(state["optim"])
-        loop.sched.load_state_dict(state["sched"])
-        loop.sched.T_max = max(1, loop.epochs * steps_per_epoch)  # a resumed run may extend the schedule (more epochs)
+        run.module.load_state_dict(state["model"])
+        run.opt.load_state_dict(state["optim"])
+        run.sched.load_state_dict(state["sched"])
+        run.sched.T_max = max(1, run.epochs * steps_per_epoch)  # a resumed run may extend the schedule (more epochs)
         start_epoch, step = int(state["epoch"]), int(state["step"])
         best_ssim, best_epoch = float(state["best_val_ssim"]), int(state["best_epoch"])
         history = list(state.get("history", []))
@@ -122,20 +114,20 @@ def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on
     if info.is_main:
         write_json_atomic(out / "config.json", loop.config)
 
-    bar = progress(total=loop.epochs * steps_per_epoch, initial=step, desc=desc, unit="step") if info.is_main else None
+    bar = progress(total=run.epochs * steps_per_epoch, initial=step, desc=desc, unit="step") if info.is_main else None
     try:
-        for epoch in range(start_epoch, loop.epochs):
-            loop.train_ds.set_epoch(epoch)
-            loop.sampler.set_epoch(epoch)
-            torch.manual_seed(loop.seed * 1_000_003 + epoch * 7919 + info.rank)
-            loop.module.train()
+        for epoch in range(start_epoch, run.epochs):
+            run.train_ds.set_epoch(epoch)
+            run.sampler.set_epoch(epoch)
+            torch.manual_seed(run.seed * 1_000_003 + epoch * 7919 + info.rank)
+            run.module.train()
             t0 = time.perf_counter()
             loss_sum = torch.zeros(2, dtype=torch.float64, device=device)
             samples = 0
-            for batch in loop.loader:
+            for batch in run.loader:
                 batch = batch.to(device)
                 n = batch.sharp.shape[0]
-                loss = float(loop.step(batch, step))
+                loss = float(run.step(batch, step, loop.forward, loop.loss))
                 step += 1
                 samples += n
                 loss_sum += torch.tensor([loss * n, n], dtype=torch.float64, device=device)
@@ -148,7 +140,7 @@ def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on
             record = {
                 "epoch": epoch + 1, "step": step, "loss": float(loss_sum[0] / loss_sum[1].clamp_min(1)),
                 "val_ssim": val["ssim"], "val_psnr": val["psnr"], "val_mae": val["mae"],
-                "lr": float(loop.sched.get_last_lr()[0]),
+                "lr": float(run.sched.get_last_lr()[0]),
                 "train_samples_per_s": float(samples * info.world_size / max(elapsed, 1e-9)),
             }
             history.append(record)
@@ -156,8 +148,8 @@ def run_epochs(loop: EpochLoop, out: Path, info: D.DistInfo, *, resume: bool, on
             if improved:
                 best_ssim, best_epoch = val["ssim"], epoch + 1
             state = {
-                "model": loop.module.state_dict(), "model_config": loop.model_config, "config": loop.config,
-                "optim": loop.opt.state_dict(), "sched": loop.sched.state_dict(), "epoch": epoch + 1, "step": step,
+                "model": run.module.state_dict(), "model_config": loop.model_config, "config": loop.config,
+                "optim": run.opt.state_dict(), "sched": run.sched.state_dict(), "epoch": epoch + 1, "step": step,
                 "best_val_ssim": float(best_ssim), "best_epoch": int(best_epoch), "history": history,
             }
             if info.is_main:

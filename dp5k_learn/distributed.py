@@ -5,35 +5,19 @@ Launch::
     torchrun --nproc_per_node G [--nnodes N --rdzv_backend c10d --rdzv_endpoint HOST:PORT] \\
         -m dp5k_cli train DATASET --out DIR
 
-Without torchrun's environment (``RANK`` unset) everything here is a no-op, so a CPU run or a test never
-touches ``torch.distributed``. The backend is NCCL with CUDA and gloo otherwise (CPU tests use gloo).
+Where a process sits is :class:`dp5k_common.sharding.RankInfo` (read and checked by
+:func:`dp5k_common.sharding.rank_info`); this module only adds what needs ``torch.distributed``: joining the
+process group, this process's device and the collective operations. Without torchrun's environment
+(``RANK`` unset, or ``WORLD_SIZE`` 1) everything here is a no-op, so a CPU run or a test never touches
+``torch.distributed``. The backend is NCCL with CUDA and gloo otherwise (CPU tests use gloo).
 """
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
-
 import torch
 import torch.distributed as dist
 
-
-@dataclass(frozen=True)
-class DistInfo:
-    """Where this process sits: global rank, local rank on its node, world size and its device."""
-
-    rank: int
-    local_rank: int
-    world_size: int
-    device: torch.device
-
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
-
-    @property
-    def enabled(self) -> bool:
-        return self.world_size > 1
+from dp5k_common.sharding import RankInfo, rank_info
 
 
 def resolve_device(requested: str, local_rank: int = 0) -> torch.device:
@@ -46,19 +30,21 @@ def resolve_device(requested: str, local_rank: int = 0) -> torch.device:
     return dev
 
 
-def setup(requested_device: str = "auto") -> DistInfo:
-    """Join the process group when launched by torchrun; pick this process's device."""
-    if "RANK" not in os.environ or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
-        return DistInfo(0, 0, 1, resolve_device(requested_device))
-    rank = int(os.environ["RANK"])
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    world = int(os.environ["WORLD_SIZE"])
-    device = resolve_device(requested_device, local_rank)
+def setup(requested_device: str = "auto") -> tuple[RankInfo, torch.device]:
+    """Join the process group when launched by torchrun with several processes; pick this process's device.
+
+    Raises:
+        BadInputError: torchrun's environment variables are malformed (:func:`~dp5k_common.sharding.rank_info`).
+    """
+    info = rank_info()
+    device = resolve_device(requested_device, info.local_rank)
+    if not info.enabled:
+        return info, device
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    return DistInfo(rank, local_rank, world, device)
+    return info, device
 
 
 def teardown() -> None:
@@ -66,12 +52,12 @@ def teardown() -> None:
         dist.destroy_process_group()
 
 
-def barrier(info: DistInfo) -> None:
+def barrier(info: RankInfo) -> None:
     if info.enabled:
         dist.barrier()
 
 
-def all_reduce_sum(values: torch.Tensor, info: DistInfo) -> torch.Tensor:
+def all_reduce_sum(values: torch.Tensor, info: RankInfo) -> torch.Tensor:
     """Sum a tensor over all processes (identity when not distributed). Returns a new tensor."""
     out = values.detach().clone()
     if info.enabled:

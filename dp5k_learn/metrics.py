@@ -1,6 +1,6 @@
 r"""Masked image metrics of Table 2: MAE, PSNR and SSIM with invalid-depth pixels left out.
 
-Definitions (pinned by ``tests/neural_dp/test_metrics.py``):
+Definitions (pinned by ``tests/learn/test_metrics.py``):
 
 * **MAE** over valid pixels and channels: :math:`\sum_m |p - g| / (C \sum m)`.
 * **PSNR** per image from the MSE over valid pixels and channels, data range 1.0:

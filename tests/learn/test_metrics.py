@@ -7,8 +7,8 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from neural_dp.losses import dp_loss, masked_charbonnier, masked_gradient_charbonnier
-from neural_dp.metrics import masked_mae, masked_psnr, masked_ssim
+from dp5k_learn.losses import dp_loss, masked_charbonnier, masked_gradient_charbonnier
+from dp5k_learn.metrics import masked_mae, masked_psnr, masked_ssim
 
 
 def _pair(seed: int = 0, H: int = 48, W: int = 64) -> tuple[torch.Tensor, torch.Tensor]:

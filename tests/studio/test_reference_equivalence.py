@@ -1,8 +1,9 @@
-"""Equivalence of the studio's optimised paths (issue 22 target 6) with today's renderers (reference_render.py).
+"""Equivalence of the studio's optimised paths with their reference implementations (``tests/reference``).
 
-Each optimised path is compared with the frozen reference on a small scene with hidden surfaces: the depth
-plan + per-radiance render, a plan reused for other radiance images, the structured-light frames formed
-from the dark / full-light / complement views (pattern_views.py), the pinhole radiance and the raw sensor.
+Each optimised path is compared with its reference on a small scene with hidden surfaces: the depth plan +
+per-radiance render (``dp_image_formation``), a plan reused for other radiance images, the structured-light frames
+formed from the dark / full-light / complement views (pattern_views.py), the pinhole radiance
+(``pinhole_radiance``) and the raw sensor (``raw_sensor``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dp5k_studio.dp_optics import plan_dp
 from dp5k_studio.sensor import expose_raw
 from dp5k_studio.studio import diffraction_sigma_px
 
-from . import reference_render as ref
+from ..reference import dp_image_formation, pinhole_radiance, raw_sensor
 
 TOL = 1e-4
 """Largest allowed difference of linear radiance (white paper ~ 0.85)."""
@@ -41,14 +42,14 @@ def _max_diff(a, b) -> float:
 
 
 @pytest.mark.parametrize("f_number,effects", [(1.8, None), (22.0, None), (1.8, PLANTED)])
-def test_plan_render_equals_todays_renderer(studio: Studio, f_number: float, effects: EffectSet | None) -> None:
+def test_plan_render_equals_the_reference(studio: Studio, f_number: float, effects: EffectSet | None) -> None:
     g = studio.geometry(0)
     hidden = (g.hidden_radiance(None), g.hidden["depth_m"] * 1000.0)
     lens = _lens(studio, f_number)
     new = render_dp(studio.radiance(0), g.depth_m * 1000.0, lens, effects, full=True, hidden=hidden)
-    old = ref.render_dp(studio.radiance(0), g.depth_m * 1000.0, lens, effects, full=True, hidden=hidden)
-    assert float(np.abs(old.left - old.right).max()) > 0.01  # the views differ: the comparison is not vacuous
-    assert _max_diff((new.left, new.right, new.full), (old.left, old.right, old.full)) <= TOL
+    want_views = dp_image_formation.render_dp(studio.radiance(0), g.depth_m * 1000.0, lens, effects, full=True, hidden=hidden)
+    assert float(np.abs(want_views.left - want_views.right).max()) > 0.01  # the views differ: the comparison is not vacuous
+    assert _max_diff((new.left, new.right, new.full), (want_views.left, want_views.right, want_views.full)) <= TOL
 
 
 def test_a_plan_reused_for_other_radiance_equals_fresh_renders(studio: Studio) -> None:
@@ -59,13 +60,13 @@ def test_a_plan_reused_for_other_radiance_equals_fresh_renders(studio: Studio) -
         pat = projection(k, 1920, 1200).astype(np.float32) / 255.0
         rad, hid = g.radiance(pat), g.hidden_radiance(pat)
         got = plan.render(rad, hid)
-        want = ref.render_dp(rad, g.depth_m * 1000.0, lens, None, hidden=(hid, g.hidden["depth_m"] * 1000.0))
+        want = dp_image_formation.render_dp(rad, g.depth_m * 1000.0, lens, None, hidden=(hid, g.hidden["depth_m"] * 1000.0))
         assert _max_diff((got.left, got.right), (want.left, want.right)) <= TOL
 
 
 def test_structured_light_frames_equal_direct_renders(studio: Studio) -> None:
     """Black, white, a Gray-code pair (the - frame formed from the + frame), a grey level and a colour image
-    in the order a capture shows them, against today's render of each frame's radiance."""
+    in the order a capture shows them, against the reference render of each frame's radiance."""
     g = studio.geometry(0)
     F_m = studio.focus_distance_m(0, studio.focus_point_px(0))
     lens = _lens(studio, 22.0)
@@ -78,9 +79,10 @@ def test_structured_light_frames_equal_direct_renders(studio: Studio) -> None:
         studio.set_projector_image(img)
         got = studio.render_views(0, 22.0, F_m)
         pat = None if img is None else img.astype(np.float32) / 255.0
-        old = ref.render_dp(ref.ReferenceGeometry(g).radiance(pat), g.depth_m * 1000.0, lens, studio.effects_at(22.0),
-                            hidden=(ref.ReferenceGeometry(g).hidden_radiance(pat), g.hidden["depth_m"] * 1000.0))
-        want = [cv2.GaussianBlur(v, (0, 0), sig, borderType=cv2.BORDER_REFLECT) for v in (old.left, old.right)]
+        reference = pinhole_radiance.ReferenceGeometry(g)
+        want_views = dp_image_formation.render_dp(reference.radiance(pat), g.depth_m * 1000.0, lens, studio.effects_at(22.0),
+                                                  hidden=(reference.hidden_radiance(pat), g.hidden["depth_m"] * 1000.0))
+        want = [cv2.GaussianBlur(v, (0, 0), sig, borderType=cv2.BORDER_REFLECT) for v in (want_views.left, want_views.right)]
         assert _max_diff((got.left, got.right), want) <= TOL
         seen.append(float(got.left.mean()))
     studio.set_projector_image(None)
@@ -88,10 +90,10 @@ def test_structured_light_frames_equal_direct_renders(studio: Studio) -> None:
 
 
 @pytest.mark.parametrize("supersample", [1, 2])
-def test_radiance_equals_todays(supersample: int) -> None:
+def test_radiance_equals_the_reference(supersample: int) -> None:
     rig = make_rig("small")
     g = Studio(make_scene("boxes", rig), rig, supersample=supersample).geometry(1)
-    r = ref.ReferenceGeometry(g)
+    r = pinhole_radiance.ReferenceGeometry(g)
     rng = np.random.default_rng(1)
     for pat in (None, projection(10, 1920, 1200).astype(np.float32) / 255.0, rng.random((1200, 1920, 3), dtype=np.float32)):
         assert np.array_equal(g.radiance(pat), r.radiance(pat))
@@ -99,8 +101,8 @@ def test_radiance_equals_todays(supersample: int) -> None:
 
 
 @pytest.mark.parametrize("shot_var_factor", [1.0, 4.0])
-def test_raw_sensor_equals_todays(studio: Studio, shot_var_factor: float) -> None:
+def test_raw_sensor_equals_the_reference(studio: Studio, shot_var_factor: float) -> None:
     v = studio.render_views(0, 4.0, 2.0)
     new = expose_raw(v.left, v.right, 4.0, 0.01, 100, np.random.default_rng(3), shot_var_factor=shot_var_factor)
-    old = ref.expose_raw(v.left, v.right, 4.0, 0.01, 100, np.random.default_rng(3), shot_var_factor=shot_var_factor)
-    assert np.array_equal(new[0], old[0]) and np.array_equal(new[1], old[1])
+    want_views = raw_sensor.expose_raw(v.left, v.right, 4.0, 0.01, 100, np.random.default_rng(3), shot_var_factor=shot_var_factor)
+    assert np.array_equal(new[0], want_views[0]) and np.array_equal(new[1], want_views[1])

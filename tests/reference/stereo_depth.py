@@ -1,35 +1,27 @@
-"""The depth step as it was before issue 22's third pass (commit a50fa0b), kept verbatim for the equivalence tests
-(``test_depth_pass3.py``): code views, matching, triangulation, the projector's correspondences and
-``depth_for_camera``. Helpers the pass did not change are imported from ``dp5k_process``. Not a test module."""
+"""Stereo depth from structured light, the reference: code views, matching in the other camera, ray-midpoint
+triangulation.
 
-# ruff: noqa
+A readable version of the depth step's algorithms in :mod:`dp5k_process.triangulate`:
+
+* :func:`bucket_centroids_px`, :func:`sample_centroids` and :func:`code_view`: per projector pixel the mean camera
+  pixel (3DUNDERWORLD's bucket), smoothed codes and their gradients;
+* :func:`match_in_other`: for every reference pixel the sub-pixel point of the other camera with the same code
+  (a start from the centroids, then Newton steps on the smoothed codes), over the whole image at once;
+* :func:`midpoint_depth` and :func:`depth_from_match`: depth by the midpoint of the two rays, in one pass.
+
+The package's versions (one blurred mask for both codes, reusable centroid maps, matching in row blocks,
+triangulation in chunks) must give the same views, matches and depths bit for bit
+(``tests/process/test_reference_equivalence.py``). Not a test module.
+"""
+
 from __future__ import annotations
-
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.calibrate import CameraCalibration, StereoCalibration
-from dp5k_process.filters import backproject, filter_depth, recursive_fill
-from dp5k_process.graycode import GrayDecode
-from dp5k_process.pipeline import ProcessConfig, fill_steps_for
-from dp5k_process.projector import (ProjectorCalibConfig, ProjectorModel, _dlt, _refine, _unpack, mixed_codes,
-                                    procam_depth)
-from dp5k_process.triangulate import (CodeView, TriangulationConfig, _remap, normalised_rays, smooth_code,
-                                      undistort_px)
-
-ViewCache = dict
-
-
-def cached_view(decs, cam, scale, tri, cache):
-    """refine.cached_view as it was (full code views only), with this module's code_view."""
-    if cache is None:
-        return code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
-    if (cam, scale) not in cache:
-        cache[(cam, scale)] = code_view(*decs[cam].at_scale(scale), decs[cam].scale_size(scale), tri, scale)
-    return cache[(cam, scale)]
+from calib.calibrate import CameraCalibration
+from dp5k_process.triangulate import CodeView, TriangulationConfig, _remap, smooth_code, undistort_px
 
 
 def bucket_centroids_px(
@@ -194,124 +186,3 @@ def depth_from_match(
         good = np.isfinite(z) & (z > 0) & (gap / z * ref_fx_px <= cfg.max_gap_px)
     depth[ok] = np.where(good, z, np.nan)
     return depth
-
-
-def calibrate_projector(points_m: NDArray[np.float64], proj_px: NDArray[np.float64], proj_size: tuple[int, int],
-                        cfg: ProjectorCalibConfig = ProjectorCalibConfig()) -> ProjectorModel | None:
-    """Projector pinhole model from stereo points and their projector pixels; None if they cannot fix it.
-
-    Args:
-        points_m: (N, 3) points in the reference camera frame, metres.
-        proj_px: (N, 2) projector pixel coordinates (full scale, pixel centres at integers).
-        proj_size: projector (W, H) pixels.
-    """
-    ok = np.isfinite(points_m).all(1) & np.isfinite(proj_px).all(1)
-    X, x = points_m[ok].astype(np.float64), proj_px[ok].astype(np.float64)
-    if len(X) < cfg.min_points:
-        return None
-    if len(X) > cfg.max_points:
-        idx = np.random.default_rng(cfg.seed).choice(len(X), cfg.max_points, replace=False)
-        X, x = X[idx], x[idx]
-    sv = np.linalg.svd(X - X.mean(0), compute_uv=False)
-    if sv[2] < cfg.min_flatness * sv[0]:
-        return None
-    P = _dlt(X, x)
-    if np.linalg.det(P[:, :3]) < 0:
-        P = -P
-    K0, R0, C0 = cv2.decomposeProjectionMatrix(P)[:3]
-    K0 = K0 / K0[2, 2]
-    K0[0, 1] = 0.0
-    if not (np.isfinite(K0).all() and K0[0, 0] > 0 and K0[1, 1] > 0 and abs(float(C0[3, 0])) > 0):
-        return None
-    pose = np.r_[cv2.Rodrigues(R0)[0].ravel(), -R0 @ (C0[:3, 0] / C0[3, 0])]
-    params = np.r_[pose, K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2], 0.0]
-    for _ in range(2):
-        params, err = _refine(X, x, params)
-        if params is None:
-            return None
-        keep = err <= max(cfg.reject_px, 3.0 * float(np.median(err)))
-        Xk, xk = X[keep], x[keep]  # the fit's correspondences within the bound
-        if keep.all() or keep.sum() < cfg.min_points:
-            break
-        X, x = Xk, xk
-    rms = float(np.sqrt(np.mean(err[keep] ** 2)))
-    if rms > cfg.max_rms_px:
-        return None
-    K, dist = _unpack(params)
-    J = cv2.projectPoints(Xk, params[0:3], params[3:6], K, dist)[1][:, :11]
-    try:  # covariance of the parameters: (J^T J)^-1 x residual variance
-        cov = np.linalg.inv(J.T @ J) * float(np.sum(err[keep] ** 2)) / max(1, 2 * len(Xk) - 11)
-    except np.linalg.LinAlgError:
-        return None
-    sd_T = float(np.sqrt(np.max(np.diag(cov)[3:6])))
-    if not sd_T <= cfg.max_position_sd_m:
-        return None
-    R = cv2.Rodrigues(params[0:3])[0]
-    lo, hi = np.percentile(Xk[:, 2], [1.0, 99.0])
-    return ProjectorModel(CameraCalibration(K, dist, tuple(proj_size)), R, params[3:6].copy(), rms, int(keep.sum()),
-                          sd_T, (float(lo) * (1.0 - cfg.depth_margin), float(hi) * (1.0 + cfg.depth_margin)))
-
-
-def depth_for_camera(
-    decs: dict[str, GrayDecode], ref: str, st: StereoCalibration, cfg: ProcessConfig,
-    views_cache: ViewCache | None = None,
-) -> tuple[NDArray[np.float32], dict[str, Any]]:
-    """Depth (metres, NaN invalid) on ``ref``'s raw pixel grid: per scale match + triangulate + filter, then Eq. 3.
-
-    Pixels the other camera cannot match (hidden from it by a nearer object, or outside its view) are
-    triangulated against the projector, calibrated from this camera's stereo points (``cfg.projector``).
-
-    ``views_cache`` (camera, scale) -> code view: pass the same dict to both cameras' calls and each camera's
-    views are computed once (a camera's views serve as reference for its own depth and as the other camera
-    for its partner's); it holds up to (scales used + 1) views per camera, each about 40 bytes per raw pixel.
-    """
-    cache: ViewCache = {} if views_cache is None else views_cache
-
-    def view(cam: str, s: int) -> CodeView:
-        return cached_view(decs, cam, s, cfg.tri, cache)
-
-    other = "cam1" if ref == "cam0" else "cam0"
-    cal = {"cam0": st.cam0, "cam1": st.cam1}
-    if ref == "cam0":
-        R, T = st.R, st.T
-    else:
-        R, T = st.R.T, -st.R.T @ st.T
-    rays = normalised_rays(cal[ref])
-    fx = float(cal[ref].K[0, 0])
-    n_scales = decs[ref].cfg.n_scales
-    coarsest = n_scales - 1
-    coarse_other = view(other, coarsest)
-    info: dict[str, Any] = {"per_scale_coverage": [], "per_scale_coverage_stereo": []}
-    n_steps = fill_steps_for(view(ref, 0), cfg.filt.fill_steps, n_scales)
-    info["fill_scales"] = [f"1/{1 << s}" for s in range(n_steps)]
-    views, stereo = [], []
-    for s in range(n_steps):  # scales Eq. 3 does not reach are not computed
-        v_ref, v_oth = view(ref, s), view(other, s)
-        q, ok = match_in_other(v_ref, v_oth, cfg.tri, coarse=coarse_other)
-        views.append(v_ref)
-        stereo.append(depth_from_match(rays, fx, q, ok, cal[other], R, T, cfg.tri))
-    filtered = [filter_depth(d, rays, cfg.filt) for d in stereo]
-    model = None
-    if cfg.projector is not None:  # where the other camera cannot see: reference camera + projector
-        pts, codes = [], []
-        for v, d in zip(views, filtered):
-            X, m = backproject(d, rays)
-            pts.append(X)
-            codes.append(np.column_stack([v.to_full(v.u)[m], v.to_full(v.v)[m]]))
-        model = calibrate_projector(np.concatenate(pts), np.concatenate(codes), decs[ref].scale_size(0), cfg.projector)
-    info["projector_rms_px"] = None if model is None else model.rms_px
-    info["projector_points"] = 0 if model is None else model.n_points
-    info["projector_position_sd_mm"] = None if model is None else model.position_sd_m * 1000.0
-    depths = []
-    for s, (v, d, f) in enumerate(zip(views, stereo, filtered)):
-        info["per_scale_coverage_stereo"].append(float(np.isfinite(f).mean()))
-        if model is not None:
-            col, row, valid = decs[ref].at_scale(s)
-            todo = v.valid & ~np.isfinite(d) & ~mixed_codes(col, row, valid, v.u, v.v)
-            dp = procam_depth(rays, fx, v.to_full(v.u), v.to_full(v.v), todo, model, cfg.tri)
-            f = filter_depth(np.where(np.isfinite(d), d, dp), rays, cfg.filt)
-        depths.append(f)
-        info["per_scale_coverage"].append(float(np.isfinite(f).mean()))
-    fused = recursive_fill(depths, n_steps)
-    info["coverage_raw"] = float(np.isfinite(fused).mean())
-    return fused, info
