@@ -85,6 +85,9 @@ class SelectConfig:
             without each cause, a look-alike swapped in).
         lookalike_corr: effects whose Jacobians' largest canonical correlation on the fit crops (nuisance
             parameters projected out) reaches this are tried in each other's place.
+        lookalike_loss: an effect swapped in for a named cause is its look-alike when the detection pairs'
+            preference for the cause is not significant or smaller than this share of the cause's threshold
+            (of the systematic error the swapped model leaves).
     """
 
     screen_share: float = 0.5
@@ -92,3 +95,4 @@ class SelectConfig:
     rescreens: int = 2
     refit_lm_iters: int = 2
     lookalike_corr: float = 0.8
+    lookalike_loss: float = 0.25

@@ -6,11 +6,12 @@ and two effects that partly cancel may each make the fit worse alone, so neither
 once and removes what the held-out pairs do not need:
 
 1. **Screen** (:func:`screen_effects`). Around the fitted base model, one Jacobian of every effect's
-   parameters (and of the base model's gain, rim softness and pixel sampling) on the fit crops. For each
-   effect, the squared error one bounded Gauss-Newton step predicts it removes, alone and as its unique part
-   of the joint step of all effects (the score test's quantity, as a share of the fit crops' systematic
-   error). Effects below :attr:`SelectConfig.screen_share` of their threshold are left out. The same
-   Jacobian gives each pair of effects' largest canonical correlation (how far the data separates them).
+   parameters (and of the base model's gain, rim softness and pixel sampling) on the fit and detection crops.
+   The squared error bounded Gauss-Newton steps predict each effect removes (the score test's quantity, as a
+   share of the crops' systematic error): greedily, the effect that adds most to those taken while it adds at
+   least :attr:`SelectConfig.screen_share` of its threshold, and every effect whose unique part of the joint
+   step of all effects is that large (two effects that cancel alone). The same Jacobian gives each pair of
+   effects' largest canonical correlation (how far the data separates them).
 2. **Full model.** Every screened effect fitted together (Levenberg-Marquardt from the joint step).
 3. **Backward elimination** on the detection pairs, which no fit saw. For each effect E of the current set
    S, the model without E (the others refitted, to first order, from the full model's Jacobian) is compared
@@ -375,7 +376,9 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
     """The first-order screen of the effects ``new`` around the fitted ``model`` (the base model, or a model
     already holding some effects): the module docstring's step 1. The base model's gain, rim softness and
     pixel sampling are refitted in every step; the effects ``model`` already holds keep their fitted values
-    (their columns would cost a render each, and the screen only proposes)."""
+    (their columns would cost a render each, and the screen only proposes). Candidates: greedily, the effect
+    that adds most to those already taken, while it adds at least :attr:`SelectConfig.screen_share` of its
+    threshold; and every effect whose unique part of the joint step of all effects is that large."""
     point = model.replaced(sorted([copy.deepcopy(c) for c in model.components] + [copy.deepcopy(c) for c in new.values()],
                                   key=lambda c: c.stage))
     targets = [(c, n) for c in point.components if c.name in new for n in fittable_names(c, fit)]
@@ -395,7 +398,25 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
         alone[n] = (sse_ref - lin.predicted_sse(lin.solve({i: v for i, v in neutral.items() if i not in idx[n]}))) / systematic
         unique[n] = (lin.predicted_sse(lin.solve({i: neutral[i] for i in idx[n]})) - sse_all) / systematic
         share[n] = max(alone[n], unique[n])
-    candidates = [n for n in new if idx[n] and share[n] >= sel.screen_share * cfg.threshold(n)]
+
+    def bar(n: str) -> float:
+        return sel.screen_share * cfg.threshold(n)
+
+    # greedy at first order: the effect that adds most to those taken, while it adds enough; look-alikes of a
+    # taken effect then add little (a focus offset's blur-size look-alikes, a front size factor, red and blue
+    # focal shifts, a CoC growth, all passed "alone" and made a five-effect full model that predicted the
+    # detection pairs worse than one effect)
+    taken: list[str] = []
+    free_of = lambda names: {i: v for i, v in neutral.items() if not any(i in idx[m] for m in names)}  # noqa: E731
+    while True:
+        now = lin.predicted_sse(lin.solve(free_of(taken)))
+        gains = {n: (now - lin.predicted_sse(lin.solve(free_of(taken + [n])))) / systematic for n in new if idx[n] and n not in taken}
+        best = max(gains, key=gains.get, default=None)
+        if best is None or gains[best] < bar(best):
+            break
+        taken.append(best)
+    # and every effect whose unique part of the joint step is large: two effects that cancel each other alone
+    candidates = [n for n in new if n in taken or (idx[n] and unique[n] >= bar(n))]
     corr = {}
     names = [n for n in new if idx[n]]
     for i, a in enumerate(names):
@@ -531,9 +552,10 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
                     cfg: DetectConfig, sel: SelectConfig) -> list[dict[str, Any]]:
     """For each named cause C and each other testable effect F correlated with it (:attr:`Screen.corr`), F
     refitted in C's place: a look-alike when it explains what C explained (against the model without C it
-    passes C's test: significant, and above C's threshold) and the detection pairs do not prefer C (the
-    signed-rank test of C's model against F's is not significant). A significant preference, however
-    small, tells them apart, and the better one is named."""
+    passes C's test: significant, and above C's threshold) and the detection pairs do not prefer C
+    materially: the signed-rank test of C's model against F's is not significant, or what F loses is below
+    :attr:`SelectConfig.lookalike_loss` of C's threshold (two fits of exactly equivalent models differ by
+    their convergence alone, consistently over every pair: a significant but negligible preference)."""
     groups = []
     for c in conf.names:
         group = {"names": [c], "captures": [], "correlation": [], "effect_size_lost": [], "p_value": []}
@@ -543,12 +565,13 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
             start = {k: v for k, v in screen.values.items() if k[0] == f}
             for (k, n), v in start.items():
                 swap.component(f).params[n] = v
-            refit(swap, fit, sel.refit_lm_iters)
+            refit(swap, fit, sel.full_lm_iters)  # as converged as the model it stands in for
             su = det.eval(swap)
             explains = det.test(f, conf.without_su[c], su)
             worse = det.test(c, su, conf.su)
             lost = worse.effect_size
-            same = explains.p_value < cfg.alpha and explains.effect_size > cfg.threshold(c) and worse.p_value >= cfg.alpha
+            same = explains.p_value < cfg.alpha and explains.effect_size > cfg.threshold(c) and (
+                worse.p_value >= cfg.alpha or lost < sel.lookalike_loss * cfg.threshold(c))
             log.info("look-alike %s for %s: explains %.3f (p %.2g), loses %.3f (p %.2g) -> %s", f, c, explains.effect_size,
                      explains.p_value, lost, worse.p_value, same)
             if same:

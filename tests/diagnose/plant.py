@@ -30,8 +30,9 @@ def texture(rng: np.random.Generator, H: int, W: int) -> np.ndarray:
     return np.clip(0.05 + 0.9 * img / img.max(), 0.05, 0.95)
 
 
-def scene(rng: np.random.Generator, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sharp image and depth (mm): a slanted background plus two nearer rectangles."""
+def scene(rng: np.random.Generator, H: int, W: int, behind_focus: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Sharp image and depth (mm): a slanted background plus two nearer rectangles (at 800-1300 mm, in front of
+    the 1500 mm focus; at 1650-1750 mm with ``behind_focus``, so that every pixel is behind focus)."""
     sharp = texture(rng, H, W)
     yy, xx = np.mgrid[0:H, 0:W]
     d0, d1 = rng.uniform(1800, 4000), rng.uniform(1800, 4000)
@@ -39,16 +40,17 @@ def scene(rng: np.random.Generator, H: int, W: int) -> tuple[np.ndarray, np.ndar
     for _ in range(2):
         h, w = int(rng.integers(H // 4, H // 2)), int(rng.integers(W // 5, W // 3))
         y0, x0 = int(rng.integers(0, H - h)), int(rng.integers(0, W - w))
-        depth[y0 : y0 + h, x0 : x0 + w] = rng.uniform(800, 1300)
+        depth[y0 : y0 + h, x0 : x0 + w] = rng.uniform(1650, 1750) if behind_focus else rng.uniform(800, 1300)
         sharp[y0 : y0 + h, x0 : x0 + w] = texture(rng, h, w)
     return sharp.astype(np.float32), depth.astype(np.float32)
 
 
 def make_planted_dataset(
     root: Path, effect: str | None, params: dict[str, float], scenes: int = 8, size: tuple[int, int] = (128, 96), seed: int = 0,
-    noise_sigma: float = 0.0,
+    noise_sigma: float = 0.0, behind_focus: bool = False,
 ) -> None:
-    """Write a dataset: ``scenes`` scenes x 2 f-numbers, rendered with the base model (+ ``effect``)."""
+    """Write a dataset: ``scenes`` scenes x 2 f-numbers, rendered with the base model (+ ``effect``); with
+    ``behind_focus`` every pixel lies behind focus (:func:`scene`)."""
     W, H = size
     rng = np.random.default_rng(seed)
     model = BaseModel(rim_softness_px=0.8, gain=1.0)
@@ -60,7 +62,7 @@ def make_planted_dataset(
     split_of = {n: ("test" if i % 4 == 3 else "val" if i % 4 == 2 and i < 4 else "train") for i, n in enumerate(names)}
     splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
     for sc in names:
-        sharp, depth = scene(rng, H, W)
+        sharp, depth = scene(rng, H, W, behind_focus)
         for N in (2.0, 2.8):
             pid = f"{sc}_cam0_f{N}"
             p = PairParams(pid, sc, "cam0", N, 1500.0, 50.0, 0.05 * 128 / W, (W / 2, H / 2), (W, H))
