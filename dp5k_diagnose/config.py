@@ -88,11 +88,13 @@ class SelectConfig:
         lookalike_loss: an effect swapped in for a named cause is its look-alike when the detection pairs'
             preference for the cause is not significant or smaller than this share of the cause's threshold
             (of the systematic error the swapped model leaves).
+        lookalike_tries: at most this many effects (the most correlated first) are tried in a cause's place.
     """
 
     screen_share: float = 0.5
     full_lm_iters: int = 5
     rescreens: int = 2
     refit_lm_iters: int = 2
-    lookalike_corr: float = 0.8
+    lookalike_corr: float = 0.9
     lookalike_loss: float = 0.25
+    lookalike_tries: int = 2

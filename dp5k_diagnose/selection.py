@@ -560,7 +560,7 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
     for c in conf.names:
         group = {"names": [c], "captures": [], "correlation": [], "effect_size_lost": [], "p_value": []}
         others = [f for f in comps if f not in conf.names and screen.correlation(c, f) >= sel.lookalike_corr]
-        for f in sorted(others, key=lambda f: -screen.correlation(c, f)):
+        for f in sorted(others, key=lambda f: -screen.correlation(c, f))[: sel.lookalike_tries]:
             swap = submodel(conf.without[c], [m for m in conf.names if m != c]).with_component(copy.deepcopy(comps[f]))
             start = {k: v for k, v in screen.values.items() if k[0] == f}
             for (k, n), v in start.items():

@@ -325,7 +325,11 @@ class FrontBackAsymmetry(Component):
 
     name = "front_back_asymmetry"
     changes_psf = True
-    shape_needs_optics = True
+
+    @property
+    def shape_needs_optics(self) -> bool:  # type: ignore[override]
+        """Only spherical aberration depends on the f-number and pitch (pairs then render per f-number)."""
+        return self.params.get("spherical_mm_f1", 0.0) != 0.0
 
     def __init__(self) -> None:
         super().__init__()

@@ -198,6 +198,19 @@ def _to_pixels(w: Tensor, n: int, ss: int, beta: float) -> Tensor:
 SA_PUPIL_SAMPLES_MAX = 384
 """Most pupil samples per side of the pushforward grid (:func:`_pushforward_kernel`)."""
 
+_PUPIL_GRIDS: dict[tuple[int, str], tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+
+
+def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(u_x, u_y, rho^2, left) on an m x m grid of pupil sample centres over [-1, 1]^2 (cached); ``left`` is 1 on
+    the pupil half u_x < 0."""
+    key = (m, str(device))
+    if key not in _PUPIL_GRIDS:
+        g = (torch.arange(m, device=device, dtype=torch.float32) + 0.5) / m * 2 - 1
+        uy, ux = torch.meshgrid(g, g, indexing="ij")
+        _PUPIL_GRIDS[key] = (ux, uy, ux**2 + uy**2, (ux < 0).float())
+    return _PUPIL_GRIDS[key]
+
 
 def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
                         pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, supersample: int = 4,
@@ -226,25 +239,25 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     n = 2 * half + 1
     ss = max(_fine_supersample(n), supersample | 1)
     m = int(min(SA_PUPIL_SAMPLES_MAX, max(32, math.ceil(2 * extent * ss * 1.5)))) & ~1  # even: none on u_x = 0
-    g = (torch.arange(m, device=device, dtype=torch.float32) + 0.5) / m * 2 - 1
-    uy, ux = torch.meshgrid(g, g, indexing="ij")
-    rho2 = ux**2 + uy**2
+    ux, uy, rho2, left = _pupil_grid(m, device)
     inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + uy**2 <= 1.0)
-    prof_w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0)
-    left = (ux < 0).float()
-    w = (prof_w * ((1.0 - split) / 2.0 + split * left))[inside]
+    ux, uy, rho2, left = ux[inside], uy[inside], rho2[inside], left[inside]
+    w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0) * ((1.0 - split) / 2.0 + split * left)
     zone = c - a * (rho2 - 0.6)
-    px, py = (ux * zone / 2)[inside], (uy * zone / 2)[inside]
-    fx, fy = (px + n / 2.0) * ss - 0.5, (py + n / 2.0) * ss - 0.5  # fine-grid coordinates of the landing points
     N = n * ss
+    fx = (ux * zone / 2 + n / 2.0) * ss - 0.5  # fine-grid coordinates of the landing points
+    fy = (uy * zone / 2 + n / 2.0) * ss - 0.5
     x0, y0 = fx.floor(), fy.floor()
     tx, ty = fx - x0, fy - y0
-    fine = torch.zeros(N * N, device=device, dtype=torch.float32)
+    x0, y0 = x0.long(), y0.long()
+    idx, wts = [], []
     for dy, wy in ((0, 1 - ty), (1, ty)):
         for dx, wx in ((0, 1 - tx), (1, tx)):
-            xi, yi = (x0 + dx).long(), (y0 + dy).long()
+            xi, yi = x0 + dx, y0 + dy
             ok = (xi >= 0) & (xi < N) & (yi >= 0) & (yi < N)
-            fine.index_add_(0, (yi * N + xi)[ok], (w * wx * wy)[ok])
+            idx.append((yi * N + xi)[ok])
+            wts.append((w * wx * wy)[ok])
+    fine = torch.bincount(torch.cat(idx), torch.cat(wts), minlength=N * N).float()
     fine = _soften(fine.view(N, N), sigma * ss)
     return _to_pixels(fine, n, ss, beta)
 
