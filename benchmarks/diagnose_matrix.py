@@ -291,7 +291,7 @@ def run_job(job: tuple[Case, dict[str, float], Path, tuple[int, int], int, bool]
 
 def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int, int], pairs: int, keep: bool) -> dict[str, Any]:
     """Write the case's dataset, diagnose it as the CLI does, and return its result row."""
-    from dp5k_diagnose.detect import DetectConfig
+    from dp5k_diagnose.config import DetectConfig
     from neural_dp.registry import SimulatorSpec
     from dp5k_diagnose.run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 

@@ -52,7 +52,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
     """
-    from .detect import DetectConfig
+    from .config import DetectConfig
     from .neural_reach import NeuralReachConfig
     from .run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
@@ -95,6 +95,12 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
         for c in res["causes"]:
             click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI [{c['gain_ci_db'][0]:+.3f}, "
                        f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
+    for g in res.get("lookalikes") or []:
+        for other, capture in zip(g["names"][1:], g["captures"]):
+            click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data; to tell them apart, capture {capture})")
+    for sp in res.get("suspects") or []:
+        click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
+                   f"(95% CI [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")
     cov = res["fit_coverage"]
     click.echo(f"fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, {cov['field_zones']} of {cov['field_zones_of']} field zones")
     click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "

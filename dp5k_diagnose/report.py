@@ -90,15 +90,6 @@ def plot_findings(findings: list[dict[str, Any]], path: Path) -> str:
     return _save(fig, path)
 
 
-def discrimination_text(d: dict[str, Any]) -> str:
-    """One paragraph on the nested test of two detected effects (report.json ``discrimination``)."""
-    a, b = d["effects"]
-    u, pv = d["unique_effect_size"], d["unique_p_value"]
-    return (f"Nested test of the two detected effects: fitted together they explain {d['joint_effect_size']:.3f} of the base "
-            f"model's MSE; `{a}` adds {u[a]:+.3f} (p {pv[a]:.2g}) on top of `{b}`, `{b}` adds {u[b]:+.3f} (p {pv[b]:.2g}) "
-            f"on top of `{a}`: the data needs `{d['winner']}`.")
-
-
 def sharp_reading_lines(sr: dict[str, Any] | None) -> list[str]:
     """report.md lines on how ``sharp`` was read where params.json does not say (none when every pair does)."""
     if not sr or sr.get("source") == "params.json":
@@ -122,32 +113,50 @@ def chain_text(causes: list[dict[str, Any]]) -> str:
     return " -> ".join(f"`{c['name']}`" for c in causes)
 
 
-def exchange_lines(selection: dict[str, Any], final: list[str]) -> list[str]:
-    """report.md's account of the exchange step (report.json ``selection``): what the forward selection chose and
-    what re-selecting each cause's slot given the others changed; nothing when it did not run."""
-    ex = selection.get("exchanges") or []
-    if not ex:
+def selection_lines(selection: dict[str, Any]) -> list[str]:
+    """report.md's account of how the causes were chosen (report.json ``selection``): the screen, the effects the
+    full model held and each elimination."""
+    scr = selection.get("screen") or {}
+    if not scr:
         return []
-    fwd = selection.get("forward_order") or []
-    did = []
-    for e in ex:
-        if e["action"] == "dropped":
-            did.append(f"dropped `{e['slot']}` (nothing is detected without it given the others)")
-        elif e["action"] == "replaced":
-            did.append(f"replaced `{e['slot']}` by `{e['by']}` (effect size {e['effect_size']:.3f}, p {e['p_value']:.2g} in its place, "
-                       "and a better prediction of the detection pairs)")
-    if not did:
-        return [f"Each cause was re-tested in its slot given the others and kept ({', '.join(f'`{n}`' for n in final)}).", ""]
-    return [f"The forward selection chose {' -> '.join(f'`{n}`' for n in fwd)}; re-selecting each cause's slot given the others "
-            f"{'; '.join(did)}. The steps above are ordered by what each cause explains alone against the base model, "
-            "each tested against the model of the steps before it.", ""]
+    share = scr.get("share", {})
+    lines = ["How they were chosen: a first-order screen around the base model (share of the systematic error one "
+             "Gauss-Newton step predicts each effect removes: " + ", ".join(f"`{k}` {v:.3f}" for k, v in sorted(share.items(), key=lambda kv: -kv[1]))
+             + f"); the full model held {', '.join(f'`{n}`' for n in (selection.get('full_model') or {}).get('components', {})) or 'nothing'}."]
+    gone = []
+    for r in selection.get("rounds") or []:
+        for t in r.get("refitted") or []:
+            if not t["passed"]:
+                gone.append(f"`{t['effect']}` (given the others {t['effect_size']:+.3f}, p {t['p_value']:.2g})")
+                break
+    if gone:
+        lines[-1] += " Removed, weakest first, when the detection pairs did not need them: " + ", ".join(gone) + "."
+    return lines + [""]
+
+
+def suspects_lines(result: dict[str, Any]) -> list[str]:
+    """report.md's look-alikes and suspects (report.json ``lookalikes``, ``suspects``)."""
+    lines: list[str] = []
+    for g in result.get("lookalikes") or []:
+        first, others = g["names"][0], g["names"][1:]
+        for o, cap, cc, lost in zip(others, g["captures"], g["correlation"], g["effect_size_lost"]):
+            lines.append(f"**`{first}` or `{o}`: indistinguishable on this data.** Refitted in `{first}`'s place, `{o}` explains what it "
+                         f"explained and predicts the detection pairs as well (loses {lost:+.3f} of the systematic error; first-order "
+                         f"correlation of their effects {cc:.2f}). To tell them apart, capture {cap}.")
+            lines.append("")
+    for sp in result.get("suspects") or []:
+        lo, hi = sp["gain_ci_db"]
+        lines += [f"**Suspect, not named: `{sp['name']}`** ({sp['explanation']}): {sp['why']} (gain {sp['gain_db']:+.3f} dB).", ""]
+    return lines
 
 
 def causes_lines(result: dict[str, Any]) -> list[str]:
     """report.md's chain of causes (report.json ``causes``), the measured noise model and what the fit saw."""
     lines = ["## Causes, in order", "",
-             "Each step was tested against the model of the steps before it (effect size: share of that model's "
-             "systematic error removed on detection pairs; p: signed-rank test). Held-out PSNR gains, 95 % bootstrap CI "
+             "Each cause was tested given every other cause (effect size: the share of the base model's systematic error "
+             "that removing it from the final model gives back on the detection pairs, the others refitted; p: "
+             "signed-rank test over pairs, Holm-corrected over the causes). A cause is named only when its held-out gain "
+             "given the others has a 95 % CI above 0; otherwise it is a suspect. Held-out PSNR gains, 95 % bootstrap CI "
              "over pairs: *given the others* is what the cause adds to a model holding every other cause (the final model "
              "against it without the cause, refitted), *step* what it adds over the steps before it; the step gains add "
              "up to the cumulative one. Parameters are those of the final model, all chosen effects refitted "
@@ -168,7 +177,8 @@ def causes_lines(result: dict[str, Any]) -> list[str]:
             lines.append(f"| {c['step']} | `{c['name']}` | {c['effect_size']:.3f} | {c['p_value']:.2g} | {c['gain_db']:+.3f} [{lo:+.3f}, {hi:+.3f}] "
                          f"| {c['step_gain_db']:+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
         lines.append("")
-    lines += exchange_lines(result.get("selection") or {}, [c["name"] for c in causes if c["name"] != "noise"])
+    lines += suspects_lines(result)
+    lines += selection_lines(result.get("selection") or {})
     nm = result.get("noise_model") or {}
     if nm.get("measured"):
         iv = nm.get("intervals", {})
@@ -216,20 +226,20 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
         "",
         *sharp_reading_lines(result.get("sharp_reading")),
         *causes_lines(result),
-        "## Findings against the base model (every effect tested, ranked)",
+        "## Every effect of the vocabulary",
         "",
         "Effect size: the share of the base model's systematic error (its squared error less the views' measured "
-        "white noise) that the effect removes on detection pairs it was not fitted on; for `noise`, the excess "
-        "noise variance over a nominal sensor's.",
+        "white noise) that the effect removes on detection pairs no fit saw, given the other effects of the model "
+        "it was tested in (named: the final model; eliminated: the model it was removed from); screened out: the "
+        "share a first-order step predicted; `noise`: the excess noise variance over a nominal sensor's.",
         "",
-        "| effect | detected | effect size | statistic (t) | p-value | parameters | explanation |",
-        "|---|---|---|---|---|---|---|",
+        "| effect | named | stage | effect size | statistic (z) | p-value | parameters | explanation |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for f in result["findings"]:
         par = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in f["params"].items())
-        lines.append(f"| {f['effect']} | {'yes' if f['detected'] else ('not testable' if not f.get('testable', True) else 'no')} | {f['effect_size']:.4f} | {f['statistic']:.2f} | {f['p_value']:.2e} | {par} | {f['explanation']} |")
-    if result.get("discrimination"):
-        lines += ["", discrimination_text(result["discrimination"])]
+        lines.append(f"| {f['effect']} | {'yes' if f['detected'] else 'no'} | {f.get('stage', '')} | {f['effect_size']:.4f} | {f['statistic']:.2f} | "
+                     f"{f['p_value']:.2e} | {par} | {f['explanation']} |")
     lines += ["", f"![findings]({figs['findings']})", "", f"## Gain on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs)", "",
               "Masked over the predictable pixels (valid, out of blur reach of the frame border and of depth edges, as in "
               "the fit and the tests); the last columns take every valid pixel.", "",

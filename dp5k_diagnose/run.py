@@ -17,8 +17,11 @@ from dp5k_common.errors import BadInputError
 from neural_dp.registry import BaseModel, SimulatorSpec, model_to_spec
 
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
-from .chain import Chain, ChainConfig, model_intervals, select_causes
-from .detect import DetectConfig, Discrimination, Finding, fit_base, masked_mse
+from .config import DetectConfig, SelectConfig
+from .findings import Finding
+from .fitting import fit_base
+from .selection import Selection, drop_cause, model_intervals, select_causes
+from .tiles import masked_mse
 from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics_by_mask
 from .neural_reach import NeuralReachConfig
 
@@ -43,7 +46,7 @@ class DiagnoseConfig:
             ``seed``.
         sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
             None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
-        chain: the forward selection of every cause (:mod:`dp5k_diagnose.chain`).
+        select: how every cause is chosen (:mod:`dp5k_diagnose.selection`).
     """
 
     fit_pairs: int | None = 4
@@ -56,7 +59,7 @@ class DiagnoseConfig:
     effects: tuple[str, ...] = EFFECT_NAMES
     neural: NeuralReachConfig = field(default_factory=NeuralReachConfig)
     sharp_f_number: float | None = None
-    chain: ChainConfig = field(default_factory=ChainConfig)
+    select: SelectConfig = field(default_factory=SelectConfig)
 
 
 SHARP_READINGS = (SHARP_F_NUMBER, 0.0)
@@ -97,15 +100,15 @@ class _Pass:
     """One diagnosis of the fit and detection sets under one reading of ``sharp``."""
 
     base: BaseModel
-    chain: Chain
+    selection: Selection
     extended: BaseModel
     detect_mse: float
     seconds: tuple[float, float]
-    """(fitting the base model, testing the effects)."""
+    """(fitting the base model, selecting the causes)."""
 
     @property
     def cause(self) -> str:
-        return self.chain.names[0] if self.chain.names else NO_EFFECT
+        return self.selection.names[0] if self.selection.names else NO_EFFECT
 
 
 def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _Pass:
@@ -113,15 +116,10 @@ def _detect_pass(fit: list[Sample], det: list[Sample], cfg: DiagnoseConfig) -> _
     base = fit_base(fit, cfg.detect.base_lm_iters)
     log.info("base model fitted: %s", base.params)
     t1 = time.perf_counter()
-    chain = select_causes(base, fit, det, cfg.detect, cfg.chain, cfg.effects)
-    extended = chain.extended(base)
+    selection = select_causes(base, fit, det, cfg.detect, cfg.select, cfg.effects)
+    extended = selection.extended()
     mse = masked_mse(extended, det)
-    return _Pass(base, chain, extended, mse, (t1 - t0, time.perf_counter() - t1))
-
-
-def ordered_findings(findings: list[Finding], cause: str) -> list[Finding]:
-    """Step 1's findings with the cause's first (a structural cause leads ``noise``, which cannot raise PSNR)."""
-    return sorted(findings, key=lambda f: f.effect != cause)
+    return _Pass(base, selection, extended, mse, (t1 - t0, time.perf_counter() - t1))
 
 
 @dataclass
@@ -135,18 +133,18 @@ class Diagnosis:
     gain: dict[str, Any]
     timings_s: dict[str, float]
     splits_used: dict[str, list[str]]
-    discrimination: Discrimination | None = None
     sharp_reading: SharpReading = field(default_factory=lambda: SharpReading(None, "params.json"))
     causes: list[dict[str, Any]] = field(default_factory=list)
     noise_model: dict[str, Any] = field(default_factory=dict)
     fit_coverage: dict[str, Any] = field(default_factory=dict)
     extended_intervals: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
-    chain_tests: list[list[dict[str, Any]]] = field(default_factory=list)
-    """Per step of the chain, every effect tested against the model of the steps before (name, effect size,
-    p-value, detected, testable)."""
+    suspects: list[dict[str, Any]] = field(default_factory=list)
+    """Effects the detection pairs chose whose held-out gain given the other causes did not earn them a name
+    (95 % CI reaching 0): name, gain and why."""
+    lookalikes: list[dict[str, Any]] = field(default_factory=list)
+    """Groups of effects the data cannot tell apart (:func:`dp5k_diagnose.selection.find_lookalikes`)."""
     selection: dict[str, Any] = field(default_factory=dict)
-    """How the causes were chosen: the forward selection's order and the exchange step's slot tests
-    (:func:`dp5k_diagnose.chain.exchange_causes`)."""
+    """How the causes were chosen: the screen, the elimination and confirmation rounds."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -160,13 +158,13 @@ class Diagnosis:
             "extended_model": self.extended.describe(),
             "extended_model_spec": model_to_spec(self.extended),
             "extended_model_intervals": {k: {n: list(v) for n, v in d.items()} for k, d in self.extended_intervals.items()},
-            "chain_tests": self.chain_tests,
+            "suspects": self.suspects,
+            "lookalikes": self.lookalikes,
             "selection": self.selection,
             "noise_model": self.noise_model,
             "fit_coverage": self.fit_coverage,
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
-            "discrimination": self.discrimination.to_json() if self.discrimination else None,
             "sharp_reading": self.sharp_reading.to_json(),
         }
 
@@ -236,34 +234,65 @@ def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Dia
     if len(passes) > 1:
         log.info("sharp read as %s (detection MSE %s)", "all-in-focus" if chosen == 0 else f"f/{chosen:g}", reading.detect_mse)
     ps = passes[chosen]
-    base, chain, extended = ps.base, ps.chain, ps.extended
-    cause = ps.cause
-    findings = ordered_findings(chain.first_findings, cause)
+    base, selection = ps.base, ps.selection
     t_fit = t_load + sum(p.seconds[0] for p in passes.values())
     t_det = time.perf_counter()
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
     held = reading.apply(full_samples(load_pairs(reader, splits[gain_split])))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
-    def predictable(m: BaseModel) -> PairMetrics:
-        return pair_metrics_by_mask(lambda s: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
-
-    step_metrics = [predictable(st.model) for st in chain.steps]
-    without_metrics = [before["predictable"] if m is base else predictable(m) for m in chain.without]
+    selection, causes, suspects = confirm_on_held_out(selection, base, before["predictable"], held, cfg)
+    extended = selection.extended()
+    cause = selection.names[0] if selection.names else NO_EFFECT
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
     gain: dict[str, Any] = gain_report(before["predictable"], after["predictable"], gain_split, cfg.n_boot, cfg.seed, "predictable")
     g_all = gain_report(before["valid"], after["valid"], gain_split, cfg.n_boot, cfg.seed, "valid")
     gain["all_valid"] = {k: v for k, v in g_all.items() if k not in ("split", "per_pair_psnr_gain")}
-    fit_used = reading.apply(fit)
-    intervals = model_intervals(chain.steps[-1].model, fit_used) if chain.steps else {}
-    causes = cause_entries(chain, before["predictable"], step_metrics, intervals, cfg, without_metrics)
+    intervals = model_intervals(selection, reading.apply(fit))
+    causes = attach_intervals(causes, intervals)
     coverage = fit_coverage(reader, fit)
     t_end = time.perf_counter()
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
-    return Diagnosis("base", str(dataset), base, findings, cause, extended, gain, timings, splits, chain.first_discrimination, reading,
-                     causes, noise_model(chain.noise, cfg.detect), coverage, intervals,
-                     [[{k: f.to_json()[k] for k in ("effect", "effect_size", "p_value", "detected", "testable")} for f in step]
-                      for step in chain.step_findings],
-                     {"forward_order": chain.forward_order, "exchanges": [e.to_json() for e in chain.exchanges]})
+    return Diagnosis("base", str(dataset), base, selection.findings, cause, extended, gain, timings, splits, reading,
+                     causes, noise_model(selection.noise, cfg.detect), coverage, intervals, suspects, selection.lookalikes,
+                     selection.trace)
+
+
+def confirm_on_held_out(selection: Selection, base: BaseModel, before: PairMetrics, held: list[Sample], cfg: DiagnoseConfig,
+                        ) -> tuple[Selection, list[dict[str, Any]], list[dict[str, Any]]]:
+    """Name a cause only when it earns it on the held-out pairs: its PSNR gain given the other causes must have
+    a 95 % bootstrap CI above 0. While a cause's does not, the one with the lowest lower bound becomes a
+    *suspect* and the others are refitted and confirmed without it (:func:`dp5k_diagnose.selection.drop_cause`).
+
+    Returns (the selection, report.json ``causes``, report.json ``suspects``)."""
+    suspects: list[dict[str, Any]] = []
+    while True:
+        def predictable(m: BaseModel) -> PairMetrics:
+            return before if m is base else pair_metrics_by_mask(lambda s: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
+
+        step_metrics = [predictable(m) for m in selection.steps]
+        without_metrics = [predictable(m) for m in selection.without]
+        causes = cause_entries(selection, before, step_metrics, cfg, without_metrics)
+        weak = [c for c in causes if c["name"] != "noise" and not c["gain_ci_db"][0] > 0.0]
+        if not weak:
+            return selection, causes, suspects
+        worst = min(weak, key=lambda c: (c["gain_ci_db"][0], c["gain_db"]))
+        log.info("%s is a suspect: its held-out gain given the other causes is %+.3f dB, 95 %% CI [%+.3f, %+.3f]", worst["name"],
+                 worst["gain_db"], *worst["gain_ci_db"])
+        suspects.append({"name": worst["name"], "params": worst["params"], "gain_db": worst["gain_db"], "gain_ci_db": worst["gain_ci_db"],
+                         "gain_per_pair_db": worst["gain_per_pair_db"],
+                         "effect_size": worst["effect_size"], "p_value": worst["p_value"],
+                         "why": "the detection pairs chose it, but its PSNR gain on the held-out pairs given the other causes has a 95 % CI "
+                                f"[{worst['gain_ci_db'][0]:+.3f}, {worst['gain_ci_db'][1]:+.3f}] dB that does not lie above 0",
+                         "explanation": worst["explanation"]})
+        selection = drop_cause(selection, worst["name"])
+
+
+def attach_intervals(causes: list[dict[str, Any]], intervals: dict[str, dict[str, tuple[float, float]]]) -> list[dict[str, Any]]:
+    """Each cause entry with its parameters' 95 % intervals (``noise`` keeps its own bootstrap intervals)."""
+    for c in causes:
+        if c["name"] != "noise":
+            c["param_intervals"] = {n: list(v) for n, v in intervals.get(c["name"], {}).items()}
+    return causes
 
 
 def _mean(x: np.ndarray) -> float:
@@ -271,12 +300,10 @@ def _mean(x: np.ndarray) -> float:
     return float(x[np.isfinite(x)].mean()) if np.isfinite(x).any() else 0.0
 
 
-def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetrics],
-                  intervals: dict[str, dict[str, tuple[float, float]]], cfg: DiagnoseConfig,
+def cause_entries(selection: Selection, before: PairMetrics, step_metrics: list[PairMetrics], cfg: DiagnoseConfig,
                   without_metrics: list[PairMetrics] | None = None) -> list[dict[str, Any]]:
-    """report.json ``causes``: per chosen effect, in order, its parameters in the final (extended) model with
-    95 % intervals, its finding at its step (effect size and p against the model of the steps before), and
-    held-out PSNR gains (dB, mean over pairs with a 95 % bootstrap CI over pairs):
+    """report.json ``causes``: per chosen effect, in order, its parameters in the final (extended) model, its
+    test on the detection pairs given the other causes (effect size and p), and held-out PSNR gains (dB, mean over pairs with a 95 % bootstrap CI over pairs):
 
     * ``gain_db`` / ``gain_ci_db``: what the cause adds to a model holding every other cause (the final model
       against the final model without it, refitted; ``without_metrics``, aligned with the steps). Effects
@@ -286,14 +313,15 @@ def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetr
     * ``cumulative_gain_db``: the model after the step against the base model (the step gains add up to it).
 
     ``noise`` comes last with every gain exactly 0 (a prediction is an expectation)."""
-    final = chain.steps[-1].model if chain.steps else None
+    final = selection.model
     final_metrics = step_metrics[-1] if step_metrics else None
+    by_name = {f.effect: f for f in selection.findings}
     out: list[dict[str, Any]] = []
     prev = before.psnr
     cumulative = 0.0
-    for k, (st, pm) in enumerate(zip(chain.steps, step_metrics)):
-        name = st.finding.effect
-        comp = next(c for c in final.components if c.name == name)
+    for k, (name, pm) in enumerate(zip(selection.causes, step_metrics)):
+        comp = final.component(name)
+        f = by_name[name]
         d = pm.psnr - prev
         lo, hi = bootstrap_ci(d, cfg.n_boot, seed=cfg.seed)
         if without_metrics is not None and final_metrics is not None:
@@ -302,14 +330,14 @@ def cause_entries(chain: Chain, before: PairMetrics, step_metrics: list[PairMetr
         else:
             g, glo, ghi = d, lo, hi
         cumulative = _mean(pm.psnr - before.psnr)
-        out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()),
-                    "param_intervals": {n: list(v) for n, v in intervals.get(name, {}).items()},
-                    "effect_size": st.finding.effect_size, "p_value": st.finding.p_value,
+        out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()), "param_intervals": {},
+                    "effect_size": f.effect_size, "p_value": f.p_value,
                     "gain_db": _mean(g), "gain_ci_db": [glo, ghi],
+                    "gain_per_pair_db": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, np.broadcast_to(g, before.psnr.shape))},
                     "step_gain_db": _mean(d), "step_gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
-                    "explanation": st.finding.explanation})
+                    "explanation": f.explanation})
         prev = pm.psnr
-    nz = chain.noise
+    nz = selection.noise
     if nz is not None and nz.detected:
         out.append({"name": "noise", "step": len(out) + 1, "params": _json_params(nz.params),
                     "param_intervals": {n: list(v) for n, v in nz.intervals.items()}, "effect_size": nz.effect_size,

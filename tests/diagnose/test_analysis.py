@@ -7,7 +7,7 @@ import torch
 
 from dp5k_diagnose.analysis import tile_disparity
 from neural_dp.simulators.base.components import COMPONENTS, DisparityScale, LRGainImbalance, shift_image
-from dp5k_diagnose.detect import one_sided_t
+from dp5k_diagnose.tiles import one_sided_t
 from dp5k_diagnose.gain import bootstrap_ci
 from dp5k_common.effects import EFFECT_NAMES
 from neural_dp.simulators.base import field_coords

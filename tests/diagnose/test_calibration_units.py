@@ -11,12 +11,13 @@ import pytest
 import torch
 
 from dp5k_common.optics import coc_diameter_px
-from dp5k_diagnose import detect
+from dp5k_diagnose import findings as F
+from dp5k_diagnose import noise as N
+from dp5k_diagnose.config import DetectConfig, SelectConfig
 from dp5k_diagnose.data import Sample
-from dp5k_diagnose.detect import DetectConfig
-from neural_dp.simulators.base import BaseModel, field_coords, fit_parameters
+from neural_dp.registry import clustered_intervals, lm_fit
+from neural_dp.simulators.base import BaseModel, field_coords
 from neural_dp.simulators.base.components import FocusOffset, LRGainImbalance
-from neural_dp.simulators.base.fit import parameter_intervals
 from tests.diagnose.test_detect_units import noisy_views, samples, scene
 from tests.neural_dp.test_base_model import make_batch
 
@@ -33,22 +34,23 @@ def _lr_samples(a0: float, n_pairs: int, sigma: float, seed: int) -> list[Sample
     return [Sample(b, field_coords(B, H, W))]
 
 
-def _fit_lr(s: list[Sample]) -> tuple[BaseModel, LRGainImbalance, dict]:
+def _fit_lr(s: list[Sample]) -> tuple[BaseModel, LRGainImbalance, tuple[float, float]]:
+    """The a0 of an L/R gain ratio fitted with the gain, and its 95 % interval clustered over pairs."""
     comp = LRGainImbalance()
     model = BaseModel(rim_softness_px=0.0).with_component(comp)
-    targets = [(comp, "a0"), (model, "gain")]
-    fit_parameters(model, targets, [x.batch for x in s], [x.field for x in s], iters=6, masks=[x.score for x in s])
-    return model, comp, parameter_intervals(model, targets, [x.batch for x in s], [x.field for x in s], [x.score for x in s])
+    lin = lm_fit(model, [(comp, "a0"), (model, "gain")], s, 6)
+    lo, hi = clustered_intervals(lin, s)[0]
+    return model, comp, (float(lo), float(hi))
 
 
 def test_parameter_interval_covers_the_truth_and_shrinks_with_less_noise() -> None:
     a0 = 0.12
-    _, comp, iv = _fit_lr(_lr_samples(a0, 6, 0.02, 1))
-    lo, hi = iv[(id(comp), "a0")]
+    _, comp, (lo, hi) = _fit_lr(_lr_samples(a0, 6, 0.02, 1))
     assert lo < a0 < hi and lo < comp.params["a0"] < hi
-    _, comp2, iv2 = _fit_lr(_lr_samples(a0, 6, 0.002, 1))
-    lo2, hi2 = iv2[(id(comp2), "a0")]
+    _, comp2, (lo2, hi2) = _fit_lr(_lr_samples(a0, 6, 0.002, 1))
     assert 0 < hi2 - lo2 < 0.3 * (hi - lo)  # the interval measures the data's scatter
+    _, comp1, iv1 = _fit_lr(_lr_samples(a0, 1, 0.02, 1))
+    assert np.isnan(iv1).all()  # one pair: no spread between pairs to measure
 
 
 def test_lr_ratio_range_is_reported_over_the_covered_field_only() -> None:
@@ -65,7 +67,7 @@ def test_lr_ratio_range_is_reported_over_the_covered_field_only() -> None:
 def test_noise_model_has_bootstrap_intervals_around_its_values() -> None:
     sharp = scene(3, n=6)
     s = samples(sharp, *noisy_views(sharp, 4.0, None, 2))
-    f = detect.test_noise(BaseModel(), s, [], DetectConfig())
+    f = N.test_noise(BaseModel(), s, [], DetectConfig())
     for k in ("shot_var", "read_sigma", "variance_ratio"):
         lo, hi = f.intervals[k]
         assert lo <= f.params[k] <= hi and hi > lo, (k, lo, f.params[k], hi)
@@ -78,13 +80,15 @@ def test_colour_effects_are_not_testable_on_grey_data() -> None:
     grey_sharp = sharp.mean(1, keepdim=True).expand_as(sharp).contiguous()
     l, r = noisy_views(grey_sharp, 1.0, None, 4)
     grey = samples(grey_sharp, l.mean(1, keepdim=True).expand_as(l).contiguous(), r.mean(1, keepdim=True).expand_as(r).contiguous())
-    assert detect.colour_contrast(colour) > 10 * detect.GREY_MAX_COLOUR_CONTRAST
-    assert detect.colour_contrast(grey) < 1e-6
-    cfg = DetectConfig()
-    found = {f.effect: f for f in detect.test_effects(BaseModel(rim_softness_px=0.0), grey, grey, cfg, ("chromatic_defocus", "disparity_scale"))}
+    assert F.colour_contrast(colour) > 10 * F.GREY_MAX_COLOUR_CONTRAST
+    assert F.colour_contrast(grey) < 1e-6
+    from dp5k_diagnose.selection import select_causes
+
+    sel = select_causes(BaseModel(rim_softness_px=0.0), grey, grey, DetectConfig(), SelectConfig(), ("chromatic_defocus", "disparity_scale"))
+    found = {f.effect: f for f in sel.findings}
     assert not found["chromatic_defocus"].testable and not found["chromatic_defocus"].detected
-    assert "not testable" in found["chromatic_defocus"].explanation
-    assert found["disparity_scale"].testable
+    assert found["chromatic_defocus"].stage == "not testable" and "not testable" in found["chromatic_defocus"].explanation
+    assert found["disparity_scale"].testable and found["disparity_scale"].stage != "not testable"
 
 
 def test_focus_offset_recomputes_the_coc_from_the_float_coc_not_rounded_depth() -> None:
@@ -103,11 +107,11 @@ def test_focus_offset_recomputes_the_coc_from_the_float_coc_not_rounded_depth() 
     assert np.abs(rounded - want).max() > 0.1  # what whole millimetres of depth would have cost
 
 
-def test_chain_puts_noise_after_every_structural_cause_and_adds_up_the_step_gains() -> None:
-    from dp5k_diagnose.chain import Chain, ChainStep
-    from dp5k_diagnose.detect import Finding
+def test_causes_put_noise_after_every_structural_cause_and_add_up_the_step_gains() -> None:
+    from dp5k_diagnose.findings import Finding
     from dp5k_diagnose.gain import PairMetrics
     from dp5k_diagnose.run import DiagnoseConfig, cause_entries
+    from dp5k_diagnose.selection import Selection
     from neural_dp.simulators.base.components import DisparityScale, Noise
 
     base = BaseModel()
@@ -118,27 +122,27 @@ def test_chain_puts_noise_after_every_structural_cause_and_adds_up_the_step_gain
     noise_model = base.with_component(Noise())
     noise = Finding("noise", 5.0, 1e-6, 3.0, True, {"shot_var": 1e-4, "read_sigma": 2e-3}, "noise", noise_model,
                     intervals={"shot_var": (8e-5, 1.2e-4)})
-    steps = [ChainStep(Finding("lr_gain_imbalance", 4.0, 1e-4, 0.9, True, {}, "lr", m1), m1),
-             ChainStep(Finding("disparity_scale", 3.0, 1e-3, 0.8, True, {}, "ds", m2), m2)]
-    chain = Chain(steps, [noise, steps[0].finding, steps[1].finding], None, noise)
-    assert chain.names == ["lr_gain_imbalance", "disparity_scale", "noise"]
-    assert chain.extended(base).component("noise") is not None
+    named = [Finding("lr_gain_imbalance", 4.0, 1e-4, 0.9, True, {}, "lr", m2), Finding("disparity_scale", 3.0, 1e-3, 0.8, True, {}, "ds", m2)]
+    sel = Selection(["lr_gain_imbalance", "disparity_scale"], m2, [m1, m2], [m1, m1], named + [noise], noise=noise)
+    assert sel.names == ["lr_gain_imbalance", "disparity_scale", "noise"]
+    assert sel.extended().component("noise") is not None
     ids = [f"p{i}" for i in range(4)]
     flat = np.zeros(4)
     before = PairMetrics(ids, np.array([30.0, 31.0, 32.0, 33.0]), flat, flat)
     after1 = PairMetrics(ids, before.psnr + np.array([10.0, 11.0, 9.0, 10.0]), flat, flat)
     after2 = PairMetrics(ids, after1.psnr + np.array([2.0, 1.0, 3.0, 2.0]), flat, flat)
-    out = cause_entries(chain, before, [after1, after2], {}, DiagnoseConfig(n_boot=200))
+    out = cause_entries(sel, before, [after1, after2], DiagnoseConfig(n_boot=200))
     assert [c["name"] for c in out] == ["lr_gain_imbalance", "disparity_scale", "noise"]
     assert out[0]["step_gain_db"] == pytest.approx(10.0) and out[1]["step_gain_db"] == pytest.approx(2.0)
     assert out[1]["cumulative_gain_db"] == pytest.approx(12.0) and out[1]["step_gain_ci_db"][0] > 0
     assert out[2]["gain_db"] == 0.0 and out[2]["gain_ci_db"] == [0.0, 0.0] and out[2]["cumulative_gain_db"] == pytest.approx(12.0)
     assert out[2]["step_gain_db"] == 0.0 and out[2]["step_gain_ci_db"] == [0.0, 0.0]
     assert out[2]["param_intervals"]["shot_var"] == [8e-5, 1.2e-4]
+    assert out[0]["effect_size"] == 0.9 and out[1]["p_value"] == 1e-3  # each cause's test given the others
     # given the others: the final model against the final model without the cause (here the first cause adds
     # 4 dB to a model that has the second, whatever it added alone at step 1)
     without_lr = PairMetrics(ids, after2.psnr - np.array([4.0, 5.0, 3.0, 4.0]), flat, flat)
     without_ds = after1
-    out = cause_entries(chain, before, [after1, after2], {}, DiagnoseConfig(n_boot=200), [without_lr, without_ds])
+    out = cause_entries(sel, before, [after1, after2], DiagnoseConfig(n_boot=200), [without_lr, without_ds])
     assert out[0]["gain_db"] == pytest.approx(4.0) and out[0]["step_gain_db"] == pytest.approx(10.0)
     assert out[1]["gain_db"] == pytest.approx(2.0) and out[0]["gain_ci_db"][0] > 0

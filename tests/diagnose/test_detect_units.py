@@ -1,5 +1,6 @@
-"""Unit checks of the detectors' building blocks: the model-free noise measurement, the predictable-pixel mask
-and the nested discrimination of two effects that mimic each other."""
+"""Unit checks of the detectors' building blocks: the noise measurement, the predictable-pixel mask, the tile
+statistics and the linear algebra the selection of causes stands on (bounded Gauss-Newton refits, canonical
+correlations of look-alikes, Holm's correction, informative pairs)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ import numpy as np
 import pytest
 import torch
 
+from dp5k_diagnose import noise as detect_noise
+from dp5k_diagnose import tiles
+from dp5k_diagnose.config import DetectConfig
 from dp5k_diagnose.data import Sample, predictable_mask
-from dp5k_diagnose import detect
-from dp5k_diagnose.detect import DetectConfig, Finding, copy_base, discriminate
+from neural_dp.registry import Linearization, jacobian, lm_fit
 from neural_dp.simulators.base import BaseModel, field_coords
 from tests.neural_dp.test_base_model import make_batch
 
@@ -51,7 +54,7 @@ def samples(sharp: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> lis
 def test_noise_measured_against_nominal(factor: float) -> None:
     sharp = scene(0)
     s = samples(sharp, *noisy_views(sharp, factor, None, 1))
-    f = detect.test_noise(BaseModel(), s, [], DetectConfig())
+    f = detect_noise.test_noise(BaseModel(), s, [], DetectConfig())
     assert f.params["variance_ratio"] == pytest.approx(factor, rel=0.15)
     assert f.detected is (factor > 1.5)
     assert f.params["shot_var"] == pytest.approx(factor * SHOT, rel=0.5)
@@ -61,7 +64,7 @@ def test_noise_ignores_structure_common_to_both_views() -> None:
     """Ringing or shifted texture is in both views alike; only independent noise counts (misregistration is not noise)."""
     sharp = scene(2)
     ring = 0.01 * torch.sin(torch.arange(sharp.shape[-1]) * 2.7)[None, None, None, :].expand_as(sharp)
-    f = detect.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 1.0, ring, 3)), [], DetectConfig())
+    f = detect_noise.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 1.0, ring, 3)), [], DetectConfig())
     assert f.params["variance_ratio"] == pytest.approx(1.0, rel=0.15) and not f.detected
 
 
@@ -77,45 +80,83 @@ def test_predictable_mask_drops_pixels_whose_blur_reaches_past_the_border() -> N
     assert not predictable_mask(b)[0, 0, 20, 20]
 
 
-def test_discriminate_prefers_the_effect_that_adds_something() -> None:
-    """Two detected gain-imbalance fits: the one with a centre ratio (what the data needs) wins the nested test."""
-    from neural_dp.simulators.base.components import COMPONENTS
+def test_bounded_gauss_newton_refit_matches_least_squares_and_holds_parameters() -> None:
+    """On a linear problem the linearization's refit is the least-squares solution; a held parameter stays at
+    its value while the others absorb what they can; a bound is respected."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(200, 3))
+    truth = np.array([0.5, -1.0, 2.0])
+    y = J @ truth + 0.01 * rng.normal(size=200)
 
-    sharp = scene(4)
-    base = BaseModel(rim_softness_px=0.0)
-    B, _, H, W = sharp.shape
-    fld = field_coords(B, H, W)
-    truth = COMPONENTS["lr_gain_imbalance"]()
-    truth.params.update(a0=0.2, ax=0.1)
-    l, r = base.with_component(truth).render(make_batch(sharp, torch.zeros(B, 1, H, W)), fld)
-    s = samples(sharp, l, r)
+    class Owner:
+        def __init__(self) -> None:
+            self.params = {"a": 0.0, "b": 0.0, "c": 0.0}
+            self.bounds = {"c": (-np.inf, 1.0)}
+            self.steps = {}
 
-    def finding(name: str, **params: float) -> Finding:
-        comp = COMPONENTS[name]()
-        comp.params.update(params)
-        return Finding(name, 5.0, 1e-4, 0.5, True, dict(comp.params), name, copy_base(base).with_component(comp))
-
-    # a stand-in that only has the field slope (misregistration cannot fit brightness): lr_gain must win
-    findings = [finding("misregistration", left_dx_px=0.0), finding("lr_gain_imbalance", a0=0.15, ax=0.08)]
-    d = discriminate(findings, base, s, s, DetectConfig())
-    assert d is not None and d.winner == "lr_gain_imbalance" and findings[0].effect == "lr_gain_imbalance"
-    assert d.unique["lr_gain_imbalance"] > 0.5 > abs(d.unique["misregistration"])
-    assert discriminate(findings[:1], base, s, s, DetectConfig()) is None
+    o = Owner()
+    lin = Linearization([(o, "a"), (o, "b"), (o, "c")], np.zeros(3), torch.from_numpy(-y), torch.from_numpy(J))
+    free = lin.solve(held={2: 1.0})
+    ref = np.linalg.lstsq(J[:, :2], y - J[:, 2] * 1.0, rcond=None)[0]
+    assert free[2] == 1.0 and np.allclose(free[:2], ref, atol=1e-8)
+    bounded = lin.solve()
+    assert bounded[2] == pytest.approx(1.0)  # c wants 2.0, its bound is 1.0
+    unbounded = np.linalg.lstsq(J, y, rcond=None)[0]
+    assert lin.predicted_sse(bounded) > lin.predicted_sse(unbounded) - 1e-12
 
 
-def test_discrimination_is_reported_in_words_and_json() -> None:
-    from dp5k_diagnose.detect import Discrimination
-    from dp5k_diagnose.report import discrimination_text
+def test_canonical_correlation_tells_look_alikes_from_independent_effects() -> None:
+    """Two effects whose Jacobian columns span the same direction (up to a nuisance column) correlate at 1;
+    independent ones near 0; projecting out the nuisance removes a correlation it alone carries."""
+    from dp5k_diagnose.selection import canonical_corr
 
-    d = Discrimination(("lr_gain_imbalance", "field_varying_psf"), {"lr_gain_imbalance": 0.002, "field_varying_psf": 0.21},
-                       {"lr_gain_imbalance": 0.4, "field_varying_psf": 1e-3}, 0.9, "field_varying_psf").to_json()
-    text = discrimination_text(d)
-    assert "`field_varying_psf` adds +0.210 (p 0.001)" in text and text.endswith("the data needs `field_varying_psf`.")
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(500, 1))
+    a = rng.normal(size=(500, 1))
+    b_same = 2.0 * a + 0.5 * n
+    c = rng.normal(size=(500, 1))
+    J = np.hstack([a, b_same, c, n])
+    A = J.T @ J
+    assert canonical_corr(A, [0], [1], [3]) == pytest.approx(1.0, abs=1e-6)
+    assert canonical_corr(A, [0], [2], [3]) < 0.15
+    shared = np.hstack([a + 3 * n, c + 3 * n, n])  # correlated only through the nuisance
+    A2 = shared.T @ shared
+    assert canonical_corr(A2, [0], [1], []) > 0.8 and canonical_corr(A2, [0], [1], [2]) < 0.15
+
+
+def test_holm_step_down_keeps_the_family_wise_level() -> None:
+    assert tiles.holm_passed([0.001, 0.02, 0.04], 0.05) == [True, True, True]  # 0.001<0.0167, 0.02<0.025, 0.04<0.05
+    assert tiles.holm_passed([0.001, 0.03, 0.04], 0.05) == [True, False, False]  # 0.03 >= 0.025 stops the steps
+    assert tiles.holm_passed([0.04, 0.001], 0.05) == [True, True]
+    rng = np.random.default_rng(2)  # under the null, any pass among 8 tests happens at most alpha of the time
+    rate = np.mean([any(tiles.holm_passed(list(rng.uniform(size=8)), 0.05)) for _ in range(2000)])
+    assert rate < 0.065
+
+
+def test_pairs_where_two_models_agree_do_not_vote() -> None:
+    """A comparison counts only the pairs where the two models' predictions differ (by 1 % of the pair's noise
+    energy): 6 pairs where an effect helps much and 8 where it changes nothing but whose tiny log ratios lean
+    the other way. Counted, the 8 sink the test; left out, the 6 decide it."""
+    from dp5k_diagnose.selection import informed_test
+
+    owners = np.array([f"p{i:02d}" for i in range(14)])
+    su_with = np.ones(14)
+    su_without = su_with * np.exp(np.r_[np.full(6, 1.0), np.full(8, -1e-4)])
+    diff = np.r_[np.full(6, 0.5), np.full(8, 1e-6)]
+    noise = np.ones(14)
+    informed = informed_test("x", su_without, su_with, diff, noise, np.full(14, 96.0), owners)
+    assert informed.p_value < 0.05 and informed.effect_size > 0
+    _, p_all = tiles.effect_test(tiles.clustered_delta(su_without, su_with, np.full(14, 96.0), owners))
+    assert p_all > 0.05
+    assert informed_test("x", su_without, su_with, np.zeros(14), noise, np.full(14, 96.0), owners).p_value == 1.0
+    # the effect size is a share of what the model without the effect leaves beyond noise
+    got = informed_test("x", np.full(14, 3.0), np.full(14, 2.0), diff, noise, np.full(14, 96.0), owners).effect_size
+    assert got == pytest.approx((42 - 28) / (42 - 14))
 
 
 def test_noise_on_too_little_data_is_a_plain_non_finding() -> None:
     sharp = scene(5, n=1, H=8, W=8)
-    f = detect.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 4.0, None, 6)), [], DetectConfig())
+    f = detect_noise.test_noise(BaseModel(), samples(sharp, *noisy_views(sharp, 4.0, None, 6)), [], DetectConfig())
     assert not f.detected and f.p_value == 1.0 and "too few" in f.explanation
     assert f.to_json()["effect"] == "noise"
 
@@ -128,14 +169,14 @@ def test_effect_sizes_are_shares_of_the_error_beyond_noise() -> None:
     cfg = DetectConfig()
     for gain_error in (0.0, 0.05):
         s = samples(sharp, left * (1 + gain_error), right * (1 + gain_error))
-        noise = detect.test_noise(BaseModel(), s, [], cfg)
-        base_su, _, _ = detect.tile_mse(BaseModel(rim_softness_px=0.0), s, cfg.tile_px)
+        noise = detect_noise.test_noise(BaseModel(), s, [], cfg)
+        base_su, _, _ = tiles.tile_mse(BaseModel(rim_softness_px=0.0), s, cfg.tile_px)
         total = float(base_su.sum())
-        sys_sse = detect.systematic_sse(total, s, noise, cfg)
+        sys_sse = detect_noise.systematic_sse(total, s, noise, cfg)
         if gain_error == 0.0:
             assert sys_sse == pytest.approx(cfg.systematic_floor * total)
         else:
-            truth = float(((torch.cat([left, right], 1) * gain_error) ** 2).sum())
+            truth = float(((torch.cat([left, right], 1) * gain_error) ** 2 * s[0].score).sum())  # over the scored pixels
             assert sys_sse == pytest.approx(truth, rel=0.1)
 
 
@@ -191,7 +232,7 @@ def test_tile_statistics_keep_partly_scored_tiles() -> None:
     score[..., 0:32, 32:43] = True  # 11 of 32 columns
     score[..., 40, 70] = True
     s = Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0",)), field_coords(1, H, W), score)
-    su, co, _ = detect.tile_mse(model, [s], 32)
+    su, co, _ = tiles.tile_mse(model, [s], 32)
     assert co.size == 4  # 3 full tiles + the partly scored one; the one-pixel tile is dropped
     assert float(su.sum()) == pytest.approx(0.1**2 * 32 * 11 * 3, rel=1e-3)
 
@@ -201,7 +242,8 @@ def test_disparity_scale_is_at_most_the_ideal_split(true_crosstalk: float) -> No
     """Crosstalk shrinks disparity, and the fit finds how much (0.8 of ideal for 0.1); views with more disparity
     than the ideal half-aperture split (what a rim-heavy aperture gives) fit at the bound 1, not above it:
     unbounded, it took the place of front_back_asymmetry on a planted set."""
-    from neural_dp.simulators.base.components import crosstalk
+    from dp5k_diagnose.selection import targets_of
+    from neural_dp.simulators.base.components import COMPONENTS, crosstalk
 
     H, W = 48, 96
     sharp = torch.nn.functional.avg_pool2d(scene(8, n=2, H=H, W=W), 3, 1, 1)
@@ -210,7 +252,8 @@ def test_disparity_scale_is_at_most_the_ideal_split(true_crosstalk: float) -> No
     base = BaseModel(rim_softness_px=0.0)
     left, right = crosstalk(*base.render(b, field_coords(2, H, W)), true_crosstalk, true_crosstalk)
     fit = [Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0", "p1")), field_coords(2, H, W))]
-    model, _, _ = detect.fit_effect(base, "disparity_scale", fit, iters=4)
+    model = base.with_component(COMPONENTS["disparity_scale"]())
+    lm_fit(model, targets_of(model, fit), fit, 6)
     got = model.components[-1].params["disparity_scale"]
     if true_crosstalk > 0:
         assert got == pytest.approx(1 - 2 * true_crosstalk, abs=0.03)
@@ -223,7 +266,9 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
     blur's shape: the front parameters stay neutral even when near-focus front pixels would pull them (here
     they are rendered 0.6 x smaller, as a sharp frame that is itself slightly blurred makes them look), while
     the back rim gain is fitted. With content on both sides all three are fitted."""
-    from neural_dp.simulators.base.components import COMPONENTS
+    from dp5k_diagnose.findings import explanation
+    from dp5k_diagnose.selection import targets_of
+    from neural_dp.simulators.base.components import COMPONENTS, fittable_names
 
     H, W = 48, 96
     sharp = torch.nn.functional.avg_pool2d(scene(9, n=2, H=H, W=W), 3, 1, 1)
@@ -236,15 +281,17 @@ def test_front_back_asymmetry_fits_only_the_sides_the_data_shows() -> None:
         left, right = BaseModel(0.0, 1.0, [truth]).render(b, field_coords(2, H, W))
         fit = [Sample(dataclasses.replace(b, left=left, right=right, pair_ids=("p0", "p1")), field_coords(2, H, W))]
         comp = COMPONENTS["front_back_asymmetry"]()
-        assert comp.supported_names(fit) == (["back_rim_gain"] if lo > -1.5 else ["back_rim_gain", "front_center_gain", "front_size_factor"])
-        model, _, _ = detect.fit_effect(BaseModel(rim_softness_px=0.0), "front_back_asymmetry", fit, iters=4)
+        one_side, both = ["back_rim_gain", "spherical_mm_f1"], ["back_rim_gain", "front_center_gain", "front_size_factor", "spherical_mm_f1"]
+        assert comp.supported_names(fit) == (one_side if lo > -1.5 else both)  # spherical aberration shows on either side
+        model = BaseModel(rim_softness_px=0.0).with_component(COMPONENTS["front_back_asymmetry"]())
+        lm_fit(model, targets_of(model, fit), fit, 6)
         fitted[lo] = model.components[-1].params
-        finding = detect.test_effects(BaseModel(rim_softness_px=0.0), fit, fit, DetectConfig(lm_iters=1), ("front_back_asymmetry",))[0]
-        held_said = "front_center_gain, front_size_factor not fitted" in finding.explanation
-        assert held_said == (lo > -1.5), finding.explanation  # the report says which parameters were held neutral
+        held = [n for n in comp.fit_names if n not in fittable_names(comp, fit)]
+        held_said = "front_center_gain, front_size_factor not fitted" in explanation("front_back_asymmetry", comp.describe(), held)
+        assert held_said == (lo > -1.5)  # the report says which parameters were held neutral
     assert fitted[-1.4]["front_size_factor"] == 1.0 and fitted[-1.4]["front_center_gain"] == 0.0
     assert fitted[-1.4]["back_rim_gain"] == pytest.approx(1.0, abs=0.3)
-    assert fitted[-8.0]["front_size_factor"] < 0.85  # moves toward 0.6 (size and centre gain trade off in 4 iterations)
+    assert fitted[-8.0]["front_size_factor"] < 0.85  # moves toward 0.6 (size and centre gain trade off)
 
 
 def test_crops_carry_the_sharp_context_their_blur_needs() -> None:
@@ -293,30 +340,6 @@ def test_gain_report_leaves_out_a_pair_without_pixels_and_stays_valid_json() -> 
         gain_report(empty, empty, "test")
 
 
-@pytest.mark.parametrize("true_rim", ["base", "refit"])
-def test_an_effect_keeps_the_refit_rim_softness_only_where_the_detection_set_prefers_it(true_rim: str) -> None:
-    """The refit rim softness of an effect's extension is replaced by the base model's when that predicts the
-    detection pairs better (and kept when it does not); the effect's own parameters stay as fitted."""
-    from neural_dp.simulators.base.components import COMPONENTS
-
-    sharp = scene(5)
-    B, _, H, W = sharp.shape
-    fld = field_coords(B, H, W)
-    rims = {"base": 0.3, "refit": 0.9}
-    comp = COMPONENTS["lr_gain_imbalance"]()
-    comp.params.update(a0=0.1)
-    coc = torch.full((B, 1, H, W), 1.5)
-    l, r = BaseModel(rim_softness_px=rims[true_rim]).with_component(comp).render(make_batch(sharp, coc), fld)
-    b = dataclasses.replace(make_batch(sharp, coc, l, r), pair_ids=tuple(f"p{i}" for i in range(B)))
-    det = [Sample(b, fld)]
-    base = BaseModel(rim_softness_px=rims["base"])
-    model = BaseModel(rim_softness_px=rims["refit"], gain=1.0).with_component(comp)
-    kept = detect.keep_rim_if_better(model, base, det)
-    assert kept.params["rim_softness_px"] == rims[true_rim]
-    assert kept.components[-1].params["a0"] == 0.1 and kept.params["gain"] == model.params["gain"]
-    assert detect.masked_mse(kept, det) <= detect.masked_mse(model, det)
-
-
 def test_detection_thresholds_are_per_effect() -> None:
     """chromatic_defocus has its own, lower threshold (renderer mismatch that is the same in every channel
     cannot feed it); every other predictable effect uses min_effect, noise its own."""
@@ -344,18 +367,20 @@ def test_noise_on_texture_everywhere_is_not_the_views_dp_disparity() -> None:
     for v in (left, right):
         noisy.append(v + torch.sqrt(SHOT * v.clamp(min=0) + READ**2) * torch.randn(v.shape, generator=g))
     s = [Sample(dataclasses.replace(b, left=noisy[0], right=noisy[1]), fld)]
-    f = detect.test_noise(truth, s, [], DetectConfig())
+    f = detect_noise.test_noise(truth, s, [], DetectConfig())
     assert f.params["variance_ratio"] == pytest.approx(1.0, abs=0.2) and not f.detected
     # the same views with 4 x the nominal variance are still found
     loud = [v + torch.sqrt(3 * (SHOT * v.clamp(min=0) + READ**2)) * torch.randn(v.shape, generator=g) for v in noisy]
-    f4 = detect.test_noise(truth, [Sample(dataclasses.replace(b, left=loud[0], right=loud[1]), fld)], [], DetectConfig())
+    f4 = detect_noise.test_noise(truth, [Sample(dataclasses.replace(b, left=loud[0], right=loud[1]), fld)], [], DetectConfig())
     assert f4.params["variance_ratio"] == pytest.approx(4.0, rel=0.2) and f4.detected
 
 
-def test_noise_is_measured_again_against_the_detected_effect() -> None:
+def test_noise_is_nominal_against_the_model_that_explains_the_views() -> None:
     """Too little DP disparity (crosstalk) on texture that is nowhere flat: against the base model the views'
-    L - R error reads as excess noise and is detected; measured against the base model with the detected
-    disparity_scale it is the nominal noise again, and the finding says against what it was measured."""
+    L - R error leaks into the noise reading, but the white-noise filter (second differences in x and y)
+    keeps it below the 1.5 x threshold (the 3 x 3 high-pass read it as > 1.5 x, named ``noise``); against the
+    base model with the planted disparity_scale, which the selection measures noise against once it names
+    that cause, it is the nominal noise."""
     from neural_dp.simulators.base.components import COMPONENTS
 
     g = torch.Generator().manual_seed(11)
@@ -373,15 +398,11 @@ def test_noise_is_measured_again_against_the_detected_effect() -> None:
     noisy = [v + torch.sqrt(SHOT * v.clamp(min=0) + READ**2) * torch.randn(v.shape, generator=g) for v in (left, right)]
     s = [Sample(dataclasses.replace(b, left=noisy[0], right=noisy[1]), fld)]
     cfg = DetectConfig()
-    noise = detect.test_noise(base, s, [], cfg)
-    assert noise.detected and noise.params["variance_ratio"] > 1.5
-    effect = Finding("disparity_scale", 5.0, 1e-4, 0.9, True, dict(comp.params), "disparity_scale", truth)
-    again = detect.remeasure_noise(noise, [noise, effect], s, [], cfg, 1e-5)
-    assert again.params["variance_ratio"] == pytest.approx(1.0, abs=0.2) and not again.detected
-    assert again.params["variance_ratio_vs_base"] == noise.params["variance_ratio"]
-    assert "against the base model with disparity_scale" in again.explanation
-    # nothing else detected: the first measurement stands
-    assert detect.remeasure_noise(noise, [noise, dataclasses.replace(effect, detected=False)], s, [], cfg, 1e-5) is noise
+    against_base = detect_noise.test_noise(base, s, [], cfg)
+    assert not against_base.detected and 1.0 < against_base.params["variance_ratio"] < 1.4
+    against_truth = detect_noise.test_noise(truth, s, [], cfg)
+    assert against_truth.params["variance_ratio"] == pytest.approx(1.0, abs=0.1) and not against_truth.detected
+    assert against_truth.params["variance_ratio"] < against_base.params["variance_ratio"]
 
 
 def test_effect_test_is_not_fooled_by_a_few_pairs_with_large_gains() -> None:
@@ -389,12 +410,12 @@ def test_effect_test_is_not_fooled_by_a_few_pairs_with_large_gains() -> None:
     rest a little. The t test's p is 0.065; the signed-rank test names it. With fewer than 6 units the t test
     is used (the signed-rank test's smallest p would be 2^-n); a null sample stays insignificant."""
     d = np.array([-0.023, -0.001, 0.003, 0.003, 0.004, 0.02, 0.023, 0.023, 0.065, 0.067, 0.082, 0.176, 2.015, 2.669])
-    assert detect.one_sided_t(d)[1] > 0.05
-    z, p = detect.effect_test(d)
+    assert tiles.one_sided_t(d)[1] > 0.05
+    z, p = tiles.effect_test(d)
     assert p < 0.01 and z > 2
-    assert detect.effect_test(-d)[1] > 0.9
+    assert tiles.effect_test(-d)[1] > 0.9
     small = np.array([0.5, 0.6, 0.7, 0.8])
-    assert detect.effect_test(small) == detect.one_sided_t(small)
+    assert tiles.effect_test(small) == tiles.one_sided_t(small)
     rng = np.random.default_rng(1)
-    rate = np.mean([detect.effect_test(rng.normal(0, 1, 16))[1] < 0.05 for _ in range(400)])
+    rate = np.mean([tiles.effect_test(rng.normal(0, 1, 16))[1] < 0.05 for _ in range(400)])
     assert rate < 0.08

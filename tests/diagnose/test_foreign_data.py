@@ -39,7 +39,8 @@ def test_diagnose_names_an_effect_planted_by_another_renderer(tmp_path: Path, ef
 def test_a_bright_rim_and_a_focus_offset_from_another_renderer_are_both_named(tmp_path: Path) -> None:
     """Two effects that hide each other, rendered by foreign code (its rim is quadratic, the base model's
     quartic): alone against the base model the focus offset explains 0.22 at p = 0.07 and the rim makes the
-    fit worse, so no single effect is detected; the pair look-ahead names both (docs/diagnose.md)."""
+    fit worse, so a forward selection detects neither; starting from the full model, backward elimination
+    keeps both (docs/diagnose.md)."""
     from dp5k_diagnose.run import diagnose_base
 
     ds = tmp_path / "ds"

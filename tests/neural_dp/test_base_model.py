@@ -247,7 +247,7 @@ def test_fit_base_finds_how_the_data_samples_its_psfs(truth_box: float) -> None:
     """Views rendered with triangle (0) or box (1) pixel sampling, fine texture, CoC 0.3-3 px, nominal
     noise: diagnose's base fit recovers the sampling, with no rim softness in either case."""
     from dp5k_diagnose.data import Sample
-    from dp5k_diagnose.detect import fit_base
+    from dp5k_diagnose.fitting import fit_base
 
     g = torch.Generator().manual_seed(3)
     B, H, W = 4, 48, 64

@@ -8,19 +8,24 @@ ones; field coordinates ``x, y`` are in [-1, 1], ``r^2 = (x^2 + y^2) / 2`` (corn
 ===================== ================================================================================
 effect                model change (parameters)
 ===================== ================================================================================
-lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2; left x 2 rho/(1+rho),
+lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y^2 + axy x y; left x 2 rho/(1+rho),
                       right x 2/(1+rho) (``lr_ratio_center`` = exp(a0))
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
-                      receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right
+                      receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
+                      cat's-eye vignetting: at field x the pupil cut by a unit circle centred ``vignetting`` x
+                      pupil radii along x (each view's brightness corrected back)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
                       ``disparity_scale`` = 1 - 2 kappa (L/R separation / ideal half-aperture one), in
                       [-0.5, 1]: crosstalk >= 0 only shrinks it; < 0 means swapped views
-focus_offset          CoC recomputed (Eq. 6) at focus distance ``focus_factor`` x F (``focus_offset_mm`` reported)
-psf_profile           radial weight 1 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright centre)
+focus_offset          CoC recomputed (Eq. 6) at focus distance F' with 1/F' = 1/(``focus_factor`` F) - ``focus_shift_dpt``
+                      (a relative error and one in dioptres; ``focus_offset_mm`` reported)
+psf_profile           radial weight 1 + ``rim_gain2`` (rho/R)^2 + ``rim_gain`` (rho/R)^4 (> 0 bright rim, < 0 bright
+                      centre; a ring near the rim, a quadratic or a quartic rim)
 front_back_asymmetry  behind focus weight 1 + ``back_rim_gain`` (rho/R)^2, in front 1 + ``front_center_gain``
-                      (1 - (rho/R)^2) and diameter x ``front_size_factor``
+                      (1 - (rho/R)^2) and diameter x ``front_size_factor``; and spherical aberration: pupil zone rho
+                      lands as if the CoC were c - ``spherical_mm_f1`` / N^3 (rho^2 - 3/5) (mm on the sensor)
 misregistration       each view shifted by (``left_dx_px``, ``left_dy_px``), (``right_dx_px``, ``right_dy_px``)
 noise                 signal-dependent white noise var = ``shot_var`` I + ``read_sigma``^2 in the views
                       (estimated from the residual; the prediction itself, an expectation, is unchanged)
@@ -50,7 +55,7 @@ class LRGainImbalance(Component):
     name = "lr_gain_imbalance"
     post_only = True
     stage = 1
-    KEYS = ("a0", "ax", "ay", "axx", "ayy")
+    KEYS = ("a0", "ax", "ay", "axx", "ayy", "axy")
 
     def __init__(self) -> None:
         super().__init__()
@@ -60,10 +65,11 @@ class LRGainImbalance(Component):
         self.steps = {k: 0.01 for k in self.KEYS}
 
     def log_ratio(self, field: Tensor) -> Tensor:
-        """(B, 1, H, W) ln(L/R gain ratio) at field coordinates (B, 2, H, W)."""
+        """(B, 1, H, W) ln(L/R gain ratio) at field coordinates (B, 2, H, W): every quadratic in x and y (a
+        renderer's or a sensor's ramp may tilt along any direction and curve along either axis)."""
         x, y = field[:, :1], field[:, 1:2]
         p = self.params
-        return p["a0"] + p["ax"] * x + p["ay"] * y + p["axx"] * x * x + p["ayy"] * y * y
+        return p["a0"] + p["ax"] * x + p["ay"] * y + p["axx"] * x * x + p["ayy"] * y * y + p.get("axy", 0.0) * x * y
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
         rho = torch.exp(self.log_ratio(field))
@@ -92,19 +98,42 @@ def crosstalk(left: Tensor, right: Tensor, k_rl: Tensor | float, k_lr: Tensor | 
 
 
 class FieldVaryingPSF(Component):
-    """Blur grows off axis and the split softens toward the field edges (half-moons become ellipses)."""
+    """The blur changes across the field, three ways a real lens and sensor do it:
+
+    * ``coc_growth_at_corner``: the blur grows off axis, CoC x (1 + g r^2);
+    * ``edge_leak``: the photodiodes' split shifts off axis (the chief ray's angle), so one view receives
+      ``edge_leak`` max(0, -x) of the other view's light (mirrored on the right);
+    * ``vignetting``: a lens element other than the stop clips the pupil off axis (a cat's-eye pupil): at field
+      x the pupil is cut by a circle of radius 1 centred ``vignetting`` x pupil radii along x, each view's
+      brightness corrected back (its PSF, not its light, changes: the clipped half's blur narrows and its
+      disparity shrinks). Its sign says which side the clipping element sits on.
+    """
 
     name = "field_varying_psf"
+    post_params = ("edge_leak",)
+    """Parameters only the :meth:`post` hook reads (a fit's Jacobian reuses one layered render for them)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0}
+        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0, "vignetting": 0.0}
         self.fit_names = list(self.params)
-        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5)}
-        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02}
+        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5), "vignetting": (-1.2, 1.2)}
+        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02, "vignetting": 0.05}
+
+    @property
+    def field_x_dependent(self) -> bool:  # type: ignore[override]
+        return self.params.get("vignetting", 0.0) != 0.0
+
+    @property
+    def changes_psf(self) -> bool:  # type: ignore[override]
+        return self.params.get("vignetting", 0.0) != 0.0
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         return coc_px * (1.0 + self.params["coc_growth_at_corner"] * field_r2(field))
+
+    def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
+        v = self.params.get("vignetting", 0.0)
+        return replace(shape, clip_dx=shape.clip_dx + v * self.field_x) if v else shape
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
         x = field[:, :1]
@@ -184,10 +213,14 @@ MIN_FOCUS_OVER_FOCAL = 1.05
 
 
 class FocusOffset(Component):
-    """The lens focuses at ``F_true = focus_factor x F_recorded`` (Eq. 6 recomputed at F_true).
+    """The lens focuses at :math:`F'` with :math:`1/F' = 1/(k F) - \\delta` instead of the recorded :math:`F` (Eq. 6
+    recomputed at :math:`F'`).
 
-    A relative error, as an autofocus or focus-by-wire error that scales with the distance; the report also
-    gives it in mm at the mean recorded focus distance of the fit data.
+    Two forms of focus error: ``focus_factor`` k, a relative one (a focus-by-wire error that scales with the
+    distance), and ``focus_shift_dpt`` delta, one in dioptres (1/m: a sensor or autofocus offset in image
+    space, the same blur at every distance). Pairs focused at one distance cannot tell them apart (their
+    intervals then say so); pairs at several distances can. The report also gives the offset in mm at the mean
+    recorded focus distance of the fit data.
     """
 
     name = "focus_offset"
@@ -195,18 +228,27 @@ class FocusOffset(Component):
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"focus_factor": 1.0}
-        self.fit_names = ["focus_factor"]
-        self.bounds = {"focus_factor": (0.5, 2.0)}
-        self.steps = {"focus_factor": 0.01}
+        self.params = {"focus_factor": 1.0, "focus_shift_dpt": 0.0}
+        self.fit_names = ["focus_factor", "focus_shift_dpt"]
+        self.bounds = {"focus_factor": (0.5, 2.0), "focus_shift_dpt": (-1.0, 1.0)}
+        self.steps = {"focus_factor": 0.01, "focus_shift_dpt": 0.005}
         self.mean_focus_mm = float("nan")
 
     def initial_guess(self, model, batch: DPBatch, field: Tensor) -> None:
         """Remember the mean recorded focus distance (mm) to report the offset in mm."""
         self.mean_focus_mm = float(batch.focus_distance_mm.mean())
 
+    def true_focus_mm(self, F_mm: Tensor | float, f_mm: Tensor | float) -> Tensor:
+        """:math:`F' = 1 / (1/(k F) - \\delta / 1000)` (mm), at least 1.05 f (infinity or beyond: 1e9 mm)."""
+        k, dpt = self.params["focus_factor"], self.params.get("focus_shift_dpt", 0.0)
+        F = torch.as_tensor(F_mm, dtype=torch.float64)
+        inv = 1.0 / (F * k) - dpt / 1000.0
+        F_new = torch.where(inv > 1e-9, 1.0 / inv.clamp(min=1e-9), torch.full_like(F, 1e9))
+        return torch.maximum(F_new, torch.as_tensor(f_mm, dtype=torch.float64) * MIN_FOCUS_OVER_FOCAL)
+
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
-        r"""The CoC (px) at focus distance :math:`F' = \max(k F, 1.05 f)`, from the CoC itself, not the depth.
+        r"""The CoC (px) at the true focus distance :math:`F'` (:meth:`true_focus_mm`), from the CoC itself, not
+        the depth.
 
         Eq. 6 is :math:`C = K(F) (1 - F/d)` with :math:`K(F) = f^2 / (N (F - f))` (mm on the sensor), so at the
         same depth :math:`C' = K(F') (1 - (F'/F)(1 - C/K(F)))`, affine in :math:`C`: exact for coc.tif's float
@@ -214,13 +256,12 @@ class FocusOffset(Component):
         phone focus and made the CoC jump between ``k = 1`` and any other ``k``. Applied per channel to the
         CoC the components before it produced.
         """
-        k = self.params["focus_factor"]
-        if k == 1.0:
+        if self.params["focus_factor"] == 1.0 and self.params.get("focus_shift_dpt", 0.0) == 0.0:
             return coc_px
         view = lambda t: t.double().view(-1, 1, 1, 1)  # noqa: E731
         f, N, pitch = view(batch.focal_length_mm), view(batch.f_number), view(batch.pixel_pitch_mm)
         F = view(batch.focus_distance_mm)
-        F_new = torch.maximum(F * k, f * MIN_FOCUS_OVER_FOCAL)
+        F_new = self.true_focus_mm(F, f)
         K, K_new = f * f / (N * (F - f)), f * f / (N * (F_new - f))
         c_mm = coc_px.double() * pitch
         new = (K_new * (1.0 - (F_new / F) * (1.0 - c_mm / K)) / pitch).to(coc_px.dtype)
@@ -228,42 +269,58 @@ class FocusOffset(Component):
 
     def describe(self) -> dict[str, float]:
         p = dict(self.params)
-        p["focus_offset_mm"] = (p["focus_factor"] - 1.0) * self.mean_focus_mm if np.isfinite(self.mean_focus_mm) else float("nan")
+        if np.isfinite(self.mean_focus_mm):
+            F = self.mean_focus_mm
+            p["focus_offset_mm"] = float(self.true_focus_mm(F, 0.0)) - F
+        else:
+            p["focus_offset_mm"] = float("nan")
         return p
 
 
 class PSFProfile(Component):
-    """The disc is not uniform: weight 1 + rim_gain (rho/R)^4 (bright rim, "soap bubble"; < 0 bright centre)."""
+    """The disc is not uniform: weight 1 + rim_gain2 (rho/R)^2 + rim_gain (rho/R)^4 (a bright rim, "soap bubble",
+    < 0 a bright centre). Two terms, since a real lens's (or another renderer's) profile has no set power: a
+    quadratic rim, a quartic one, or a ring just inside the rim (their difference)."""
 
     name = "psf_profile"
     changes_psf = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"rim_gain": 0.0}
-        self.fit_names = ["rim_gain"]
-        self.bounds = {"rim_gain": (-0.95, 10.0)}
-        self.steps = {"rim_gain": 0.2}
+        self.params = {"rim_gain": 0.0, "rim_gain2": 0.0}
+        self.fit_names = ["rim_gain", "rim_gain2"]
+        self.bounds = {"rim_gain": (-0.95, 10.0), "rim_gain2": (-0.95, 10.0)}
+        self.steps = {"rim_gain": 0.2, "rim_gain2": 0.2}
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
-        return replace(shape, rim4=shape.rim4 + self.params["rim_gain"])
+        return replace(shape, rim2=shape.rim2 + self.params.get("rim_gain2", 0.0), rim4=shape.rim4 + self.params["rim_gain"])
 
 
 class FrontBackAsymmetry(Component):
-    """Spherical-aberration-like: rim-heavy blur behind focus, centre-heavy and larger blur in front."""
+    """Blur in front of focus differs from blur behind it: rim-heavy behind, centre-heavy and larger in front.
+
+    Two descriptions, fitted together: the blur's shape on each side as such (``back_rim_gain``,
+    ``front_center_gain``, ``front_size_factor``: the same shape at every CoC), and its physical cause,
+    spherical aberration (``spherical_mm_f1``): a ray through normalized pupil radius rho lands as if the CoC
+    were ``c - S (rho^2 - 3/5)`` with ``S = spherical_mm_f1 / N^3`` mm on the sensor (third-order aberration
+    grows with the aperture cubed; > 0 over-corrected), so the PSF's shape depends on the CoC (strong near focus,
+    fading for large discs) and on the f-number (f/4 has a tenth of f/1.8's), which a fixed shape cannot follow.
+    """
 
     name = "front_back_asymmetry"
     changes_psf = True
+    shape_needs_optics = True
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0}
+        self.params = {"back_rim_gain": 0.0, "front_center_gain": 0.0, "front_size_factor": 1.0, "spherical_mm_f1": 0.0}
         self.fit_names = list(self.params)
         # in front the disc can be centre-heavy or flat, not rim-heavy: a rim on both sides is no asymmetry
         # but psf_profile (with front_center_gain down to -0.45 it fitted a quadratic rim planted on both
         # sides better than psf_profile's quartic one, and was named in its place)
-        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (0.0, 6.0), "front_size_factor": (0.5, 2.0)}
-        self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03}
+        self.bounds = {"back_rim_gain": (-0.95, 6.0), "front_center_gain": (0.0, 6.0), "front_size_factor": (0.5, 2.0),
+                       "spherical_mm_f1": (-20.0, 20.0)}
+        self.steps = {"back_rim_gain": 0.15, "front_center_gain": 0.15, "front_size_factor": 0.03, "spherical_mm_f1": 0.2}
 
     SIDE_MIN_COC_PX = 1.5
     """A pixel tells the blur's shape on its side of focus from this |CoC| (px) on."""
@@ -286,6 +343,8 @@ class FrontBackAsymmetry(Component):
             names.append("back_rim_gain")
         if front >= self.SIDE_MIN_SHARE * max(total, 1):
             names += ["front_center_gain", "front_size_factor"]
+        if names:  # spherical aberration acts on both sides and near focus: any blur shows it
+            names.append("spherical_mm_f1")
         return names
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
@@ -296,7 +355,9 @@ class FrontBackAsymmetry(Component):
         g = self.params["front_center_gain"]
         # 1 + g (1 - q) is proportional to 1 - g/(1+g) q
         a2 = (1 - front) * self.params["back_rim_gain"] + front * (-g / (1 + g))
-        return replace(shape, rim2=shape.rim2 + a2)
+        sa_mm = self.params.get("spherical_mm_f1", 0.0)
+        sa_px = sa_mm / shape.f_number**3 / shape.pixel_pitch_mm if sa_mm and shape.f_number > 0 and shape.pixel_pitch_mm > 0 else 0.0
+        return replace(shape, rim2=shape.rim2 + a2, sa_px=shape.sa_px + sa_px)
 
 
 def fittable_names(comp: Component, samples: Sequence[Any]) -> list[str]:
@@ -384,7 +445,7 @@ class Noise(Component):
     """Sensor noise in the views: white, signal dependent, var = shot_var * I + read_sigma^2 (linear units).
 
     A simulator's prediction is the noise-free expectation, so the component leaves the views unchanged;
-    its parameters (estimated from the residual by :func:`dp5k_diagnose.detect.test_noise`) let a
+    its parameters (estimated from the residual by :func:`dp5k_diagnose.noise.test_noise`) let a
     simulator add calibrated noise when it synthesises data.
     """
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -17,7 +18,24 @@ from .psf import PSFShape, half_disc_kernels, stack_centred
 from .render import RenderConfig, render_layers
 from .sharp import sharp_radiance
 
-__all__ = ["Component", "BaseModel", "FIELD_NODES_R2"]
+__all__ = ["Component", "BaseModel", "FIELD_NODES_R2", "select_pairs"]
+
+
+def select_pairs(batch: DPBatch, idx: Tensor) -> DPBatch:
+    """The batch's pairs at indices ``idx`` (every per-pair tensor indexed along its first axis)."""
+    kw = {}
+    for f in dataclasses.fields(batch):
+        v = getattr(batch, f.name)
+        if isinstance(v, Tensor):
+            kw[f.name] = v.index_select(0, idx)
+        elif f.name == "pair_ids" and v:
+            kw[f.name] = tuple(v[i] for i in idx.tolist())
+    return dataclasses.replace(batch, **kw)
+
+FIELD_NODES_X: tuple[float, float, float] = (-1.0, 0.0, 1.0)
+"""Field x at which a PSF that changes along x (:attr:`Component.field_x_dependent`) is rendered; views in between
+are blended linearly in x, and the right view at x is the left view's mirror at -x (a pupil cut off axis is
+mirror-symmetric about the field's centre line, not about each view's split)."""
 
 FIELD_NODES_R2: tuple[float, float, float] = (0.0, 0.5, 1.0)
 """Squared field radii (corner = 1) at which a field-dependent PSF is rendered; views in between are blended
@@ -35,6 +53,9 @@ class Component(torch.nn.Module):
     name: ClassVar[str] = "component"
     channel_dependent: ClassVar[bool] = False
     field_dependent: ClassVar[bool] = False
+    field_x_dependent: ClassVar[bool] = False
+    """True when :meth:`shape` reads :attr:`field_x` (the field x of the node being rendered, in [-1, 1]): the
+    model then renders at :data:`FIELD_NODES_X`."""
     changes_psf: ClassVar[bool] = False
     post_only: ClassVar[bool] = False
     """True when the component only has a :meth:`post` hook (its fit can reuse one layered render)."""
@@ -47,6 +68,9 @@ class Component(torch.nn.Module):
     gain components with every later one."""
     needs_colour: ClassVar[bool] = False
     """True when the effect acts between colour channels: data with R = G = B cannot show it (not testable)."""
+    shape_needs_optics: ClassVar[bool] = False
+    """True when :meth:`shape` reads :attr:`PSFShape.f_number` and :attr:`PSFShape.pixel_pitch_mm`: the model then
+    renders the pairs of each f-number and pitch apart (their kernels differ)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -65,6 +89,9 @@ class Component(torch.nn.Module):
     def sharp(self, sharp: Tensor, batch: DPBatch) -> Tensor:
         """(B, 3, H, W) the sharp input as the renderer should see it. Default: unchanged."""
         return sharp
+
+    field_x: float = 0.0
+    """The field x of the render in progress (:attr:`field_x_dependent`), set by the model."""
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
         """The PSF shape for colour ``channel`` (0..2, or -1 for all) at squared field radius ``field_r2``."""
@@ -98,7 +125,7 @@ class BaseModel(DPSimulator):
             rendering (:func:`sharp_radiance`; 0 treats the sharp frame as a pinhole image).
         pixel_box: how PSFs become pixel weights, 0 (2-px triangle: linear interpolation of the sharp image)
             to 1 (1-px box: pixel-area integration), :class:`PSFShape`; a renderer-discretisation parameter
-            that :func:`dp5k_diagnose.detect.fit_base` fits with the rim softness and the gain.
+            that :func:`dp5k_diagnose.fitting.fit_base` fits with the rim softness and the gain.
     """
 
     name: ClassVar[str] = "base"
@@ -112,6 +139,8 @@ class BaseModel(DPSimulator):
         self.steps: dict[str, float] = {"rim_softness_px": 0.15, "gain": 0.01, "pixel_box": 0.25}
         self.components = torch.nn.ModuleList(list(components))
         self.config = config or RenderConfig()
+        self._optics: tuple[float, float] = (0.0, 0.0)
+        """(f-number, pixel pitch mm) of the pairs being rendered, for :attr:`Component.shape_needs_optics`."""
 
     # -- composition -----------------------------------------------------------------------------
     def with_component(self, comp: Component) -> "BaseModel":
@@ -147,6 +176,8 @@ class BaseModel(DPSimulator):
             rim4=one * 0.0,
             split=one,
             pixel_box=one * self.params["pixel_box"],
+            f_number=self._optics[0],
+            pixel_pitch_mm=self._optics[1],
         )
         for c in self.components:
             shape = c.shape(shape, channel, r2)
@@ -164,16 +195,39 @@ class BaseModel(DPSimulator):
         return fn
 
     def render_layers_only(self, batch: DPBatch, field: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """The layered render before gain and post hooks: (left, right), each ``H * sharp``."""
+        """The layered render before gain and post hooks: (left, right), each ``H * sharp``.
+
+        Where a component's PSF depends on the aperture (:attr:`Component.shape_needs_optics`), the pairs of
+        each (f-number, pixel pitch) are rendered apart, with that optics as the kernels' context."""
         B, _, H, W = batch.sharp.shape
         if field is None:
             field = field_coords(B, H, W, batch.sharp.device)
+        if not any(c.shape_needs_optics for c in self.components):
+            return self._render_layers(batch, field)
+        keys = list(zip(batch.f_number.tolist(), batch.pixel_pitch_mm.tolist()))
+        radiance = sharp_radiance(batch, self.sharp_deblur_iters, self.config)  # cached per batch
+        out_l = out_r = None
+        for key in sorted(set(keys)):
+            idx = torch.tensor([i for i, k in enumerate(keys) if k == key], device=batch.sharp.device)
+            self._optics = (float(key[0]), float(key[1]))
+            try:
+                l, r = self._render_layers(select_pairs(batch, idx), field.index_select(0, idx), radiance.index_select(0, idx))
+            finally:
+                self._optics = (0.0, 0.0)
+            if out_l is None:
+                out_l, out_r = l.new_zeros((B, *l.shape[1:])), r.new_zeros((B, *r.shape[1:]))
+            out_l[idx], out_r[idx] = l, r
+        return out_l, out_r
+
+    def _render_layers(self, batch: DPBatch, field: Tensor, radiance: Tensor | None = None) -> tuple[Tensor, Tensor]:
         coc = batch.coc_px.float()
-        sharp = sharp_radiance(batch, self.sharp_deblur_iters, self.config)
+        sharp = sharp_radiance(batch, self.sharp_deblur_iters, self.config) if radiance is None else radiance
         for c in self.components:
             coc = c.coc(coc, batch, field)
             sharp = c.sharp(sharp, batch)
         valid = batch.valid
+        if any(c.field_x_dependent for c in self.components):
+            return self._render_along_x(sharp, coc, valid, field)
         if any(c.field_dependent and c.changes_psf for c in self.components):
             renders = [render_layers(sharp, coc, valid, self._kernel_fn(r2), self.config) for r2 in FIELD_NODES_R2]
             r2 = field_r2(field).clamp(0.0, 1.0)
@@ -184,6 +238,25 @@ class BaseModel(DPSimulator):
             right = w0 * renders[0][1] + w1 * renders[1][1] + w2 * renders[2][1]
         else:
             left, right = render_layers(sharp, coc, valid, self._kernel_fn(0.0), self.config)
+        return left, right
+
+    def _render_along_x(self, sharp: Tensor, coc: Tensor, valid: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+        """Render at :data:`FIELD_NODES_X` and blend linearly in field x; the right view at node x is the right
+        output of the render at node -x (:data:`FIELD_NODES_X`)."""
+        renders = {}
+        for x in FIELD_NODES_X:
+            for c in self.components:
+                c.field_x = x
+            try:
+                renders[x] = render_layers(sharp, coc, valid, self._kernel_fn(x * x), self.config)
+            finally:
+                for c in self.components:
+                    c.field_x = 0.0
+        fx = field[:, :1].clamp(-1.0, 1.0)
+        w = {-1.0: (-fx).clamp(min=0), 1.0: fx.clamp(min=0)}
+        w[0.0] = 1 - w[-1.0] - w[1.0]
+        left = sum(w[x] * renders[x][0] for x in FIELD_NODES_X)
+        right = sum(w[x] * renders[-x if x else 0.0][1] for x in FIELD_NODES_X)
         return left, right
 
     def render(self, batch: DPBatch, field: Tensor | None = None, layers: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:

@@ -31,6 +31,10 @@ class PSFShape:
         pixel_box: how the PSF becomes pixel weights, from 0 (a 2-px triangle: the sharp image is linearly
             interpolated between pixel centres) to 1 (a 1-px box: each sharp pixel is a uniform square of
             light); see :func:`_half_disc_kernel`.
+        sa_px: spherical aberration: a ray through normalized pupil radius rho lands as if the CoC diameter were
+            ``scale c - sa_px (rho^2 - 3/5)`` px (> 0 over-corrected: rim-heavy discs behind focus, larger
+            centre-heavy ones in front; the 3/5 keeps the best focus, where DP disparity vanishes, at c = 0);
+            see :func:`_pushforward_kernel`.
     """
 
     coc_px: Tensor
@@ -40,6 +44,15 @@ class PSFShape:
     rim4: Tensor
     split: Tensor
     pixel_box: Tensor | float = 0.0
+    sa_px: Tensor | float = 0.0
+    clip_dx: Tensor | float = 0.0
+    """Vignetting: the pupil is cut by a circle of radius 1 (pupil radii) centred ``clip_dx`` pupil radii along x
+    (0: no cut; a cat's-eye pupil off axis, where a lens element other than the stop clips the beam)."""
+    f_number: float = 0.0
+    """The f-number of the pairs being rendered (0: not known); context for components whose PSF depends on
+    the aperture (:attr:`neural_dp.simulators.base.model.Component.shape_needs_optics`), not a kernel input."""
+    pixel_pitch_mm: float = 0.0
+    """Their output pixel pitch (mm); context like ``f_number``."""
 
 
 FINE_SUPERSAMPLE_BY_KERNEL_PX: tuple[tuple[int, int], ...] = ((9, 15), (25, 7), (2**31, 5))
@@ -96,14 +109,16 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
         t = torch.as_tensor(t)
         return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
 
-    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box)]
+    cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box, shape.sa_px,
+                                  shape.clip_dx)]
     kernels = []
     for k in range(K):
         node = tuple(c[k] for c in cols)
         key = (str(coc.device), supersample) + node
         ker = _KERNEL_CACHE.get(key)
         if ker is None:
-            ker = _half_disc_kernel(*node, supersample=supersample, device=coc.device)
+            build = _half_disc_kernel if node[-2] == 0.0 and node[-1] == 0.0 else _pushforward_kernel
+            ker = build(*node, supersample=supersample, device=coc.device)
             _KERNEL_CACHE[key] = ker
             if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
                 _KERNEL_CACHE.popitem(last=False)
@@ -120,7 +135,8 @@ def stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
 
 
 def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                      pixel_box: float = 0.0, supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
+                      pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, supersample: int = 4,
+                      device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
 
     With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
@@ -163,6 +179,13 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
     left_half = (fx * sign < 0).float() + 0.5 * (fx == 0).float()
     sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
     w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
+    return _to_pixels(w, n, ss, beta)
+
+
+def _to_pixels(w: Tensor, n: int, ss: int, beta: float) -> Tensor:
+    """A fine-grid PSF (n ss, n ss) as (n, n) pixel weights summing to 1: ``(1 - beta)`` tent (sampled at pixel
+    centres) ``+ beta`` box (pixel-area sum); see :func:`_half_disc_kernel`."""
+    device = w.device
     tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
     tent_band = _band_matrix(n * ss, tent, ss, (ss - 1) // 2, n)  # the tent sampled at pixel centres
     out = tent_band.T @ w @ tent_band
@@ -170,6 +193,60 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
         box = w.reshape(n, ss, n, ss).sum(dim=(1, 3)) / (ss * ss)
         out = (1.0 - beta) * out + beta * box
     return out / out.sum().clamp(min=1e-12)
+
+
+SA_PUPIL_SAMPLES_MAX = 384
+"""Most pupil samples per side of the pushforward grid (:func:`_pushforward_kernel`)."""
+
+
+def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
+                        pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, supersample: int = 4,
+                        device: torch.device | str = "cpu") -> Tensor:
+    r"""The left-view PSF of one node with spherical aberration, as the pushforward of the pupil.
+
+    A ray through the normalized pupil point :math:`u` (:math:`|u| \le 1`, :math:`\rho = |u|`) lands at
+    :math:`u\, c_\rho / 2` px from the chief ray, with the zone's CoC diameter
+    :math:`c_\rho = s c - a (\rho^2 - 3/5)` (``scale`` s, ``sa_px`` a); with :math:`a = 0` this is the thin-lens
+    disc of :func:`_half_disc_kernel`. The pupil is sampled on a regular grid, each sample weighted by the
+    radial profile :math:`\max(0, 1 + a_2 \rho^2 + a_4 \rho^4)` and by the split (the left photodiode takes the
+    pupil half :math:`u_x < 0`, whose rays land on the left half of the disc behind focus; ``split`` weights
+    as in :func:`_half_disc_kernel`), splatted bilinearly on the fine landing grid, softened and sampled to
+    pixels like the thin-lens kernel. Zones whose :math:`c_\rho` changes sign land on the other side: that is
+    how the PSF inverts its rim between front and back of focus. With ``clip_dx`` the pupil is also cut by a
+    circle of radius 1 centred ``clip_dx`` along x (vignetting); each view's PSF still sums to 1 (the
+    camera's per-view shading correction restores its brightness).
+    """
+    c = float(coc_px) * float(scale)
+    a = float(sa_px)
+    rho_t = torch.linspace(0.0, 1.0, 101)
+    extent = float((rho_t * (c - a * (rho_t**2 - 0.6))).abs().max()) / 2  # px, largest landing radius
+    sigma = max(float(softness_px), 0.0)
+    beta = min(max(float(pixel_box), 0.0), 1.0)
+    half = int(math.ceil(extent + 3 * sigma)) + 2
+    n = 2 * half + 1
+    ss = max(_fine_supersample(n), supersample | 1)
+    m = int(min(SA_PUPIL_SAMPLES_MAX, max(32, math.ceil(2 * extent * ss * 1.5)))) & ~1  # even: none on u_x = 0
+    g = (torch.arange(m, device=device, dtype=torch.float32) + 0.5) / m * 2 - 1
+    uy, ux = torch.meshgrid(g, g, indexing="ij")
+    rho2 = ux**2 + uy**2
+    inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + uy**2 <= 1.0)
+    prof_w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0)
+    left = (ux < 0).float()
+    w = (prof_w * ((1.0 - split) / 2.0 + split * left))[inside]
+    zone = c - a * (rho2 - 0.6)
+    px, py = (ux * zone / 2)[inside], (uy * zone / 2)[inside]
+    fx, fy = (px + n / 2.0) * ss - 0.5, (py + n / 2.0) * ss - 0.5  # fine-grid coordinates of the landing points
+    N = n * ss
+    x0, y0 = fx.floor(), fy.floor()
+    tx, ty = fx - x0, fy - y0
+    fine = torch.zeros(N * N, device=device, dtype=torch.float32)
+    for dy, wy in ((0, 1 - ty), (1, ty)):
+        for dx, wx in ((0, 1 - tx), (1, tx)):
+            xi, yi = (x0 + dx).long(), (y0 + dy).long()
+            ok = (xi >= 0) & (xi < N) & (yi >= 0) & (yi < N)
+            fine.index_add_(0, (yi * N + xi)[ok], (w * wx * wy)[ok])
+    fine = _soften(fine.view(N, N), sigma * ss)
+    return _to_pixels(fine, n, ss, beta)
 
 
 def full_disc_kernels(nodes: Tensor, supersample: int) -> Tensor:
