@@ -31,6 +31,7 @@ from dp5k_common.dataset import PairParams, split_scenes, write_index, write_pai
 from dp5k_common.errors import BadInputError
 from dp5k_common.optics import coc_diameter_px
 from dp5k_common.progress import progress
+from dp5k_common.sensor_noise import NOMINAL_READ_SIGMA, NOMINAL_SHOT_VAR, NoiseModel
 
 from .dp_optics import LensSetting, render_dp
 from .effects import EffectSet, effect_parameters, parse_effects
@@ -40,9 +41,10 @@ from .scenes import make_scene
 
 PAPER_F_NUMBERS: tuple[float, ...] = (1.8, 2.0, 2.8, 4.0, 5.6)
 SHARP_F_NUMBER = 22.0
-NOISE_SHOT = 2.0e-5
-"""Nominal shot-noise variance per unit linear intensity (a ~50 000 e- full well scaled to [0, 1])."""
-NOISE_READ = 1.0e-3
+NOISE_SHOT = NOMINAL_SHOT_VAR
+"""Nominal shot-noise variance per unit linear intensity (a ~50 000 e- full well scaled to [0, 1]; the project's
+nominal sensor, ``dp5k_common.sensor_noise``)."""
+NOISE_READ = NOMINAL_READ_SIGMA
 """Nominal read-noise sigma in linear units."""
 
 
@@ -66,11 +68,15 @@ def _diffraction(img: NDArray[np.float32], f_number: float, pitch_mm: float) -> 
     return cv2.GaussianBlur(img, (0, 0), sig, borderType=cv2.BORDER_REFLECT)
 
 
-def add_view_noise(img: NDArray[np.float32], effects: EffectSet, rng: np.random.Generator) -> NDArray[np.float32]:
-    """Nominal signal-dependent Gaussian noise in linear units, raised by the ``noise`` effect."""
+def view_noise(effects: EffectSet) -> NoiseModel:
+    """The views' sensor noise: nominal, raised by the ``noise`` effect."""
     nz = effect_parameters("noise", effects.s("noise"))
-    var = NOISE_SHOT * nz["shot_var_factor"] * np.maximum(img, 0.0) + (NOISE_READ * nz["read_sigma_factor"]) ** 2
-    return (img + rng.standard_normal(img.shape).astype(np.float32) * np.sqrt(var).astype(np.float32)).astype(np.float32)
+    return NoiseModel.uniform(NOISE_SHOT * nz["shot_var_factor"], NOISE_READ * nz["read_sigma_factor"])
+
+
+def add_view_noise(img: NDArray[np.float32], effects: EffectSet, rng: np.random.Generator) -> NDArray[np.float32]:
+    """Nominal signal-dependent Gaussian noise in linear units (:func:`view_noise`), one draw from ``rng``."""
+    return view_noise(effects).sample(img, rng)
 
 
 @dataclass
@@ -150,12 +156,12 @@ def pair_from_rgbd(
     depth_out = np.where(valid, np.clip(np.rint(z), 0, 65535), 0.0).astype(np.float32)  # depth.png holds whole mm
     valid &= depth_out > 0
     coc = coc_diameter_px(depth_out, float(focus_distance_mm), float(focal_length_mm), float(f_number), pitch)
-    nz = effect_parameters("noise", eff.s("noise"))
+    nz = view_noise(eff)
     extra = {
         "effects": eff.to_json((W, H)),
         "true_focus_distance_mm": F_true,
         "sharp_f_number": SHARP_F_NUMBER if sharp_is_pinhole else 0.0,  # 0: sharp is the input radiance
-        "noise": {"shot_var": NOISE_SHOT * nz["shot_var_factor"], "read_sigma": NOISE_READ * nz["read_sigma_factor"]} if noise else None,
+        "noise": {"shot_var": nz.shot_var[0], "read_sigma": nz.read_sigma[0]} if noise else None,
     }
     return RenderedPair(np.clip(sharp_out, 0, 1).astype(np.float32), np.clip(left, 0, 1), np.clip(right, 0, 1),
                         depth_out, np.where(valid, coc, np.nan).astype(np.float32), extra)
