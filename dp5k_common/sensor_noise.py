@@ -151,9 +151,13 @@ class NoiseModel:
         """The same shot variance and read sigma in every channel."""
         return cls((shot_var,) * CHANNELS, (read_sigma,) * CHANNELS, source)  # type: ignore[arg-type]
 
-    @property
-    def is_zero(self) -> bool:
-        return not any(self.shot_var) and not any(self.read_sigma)
+    def scaled(self, gain: float) -> "NoiseModel":
+        """The same sensor at ``gain`` x the variance (an ISO ``gain`` x higher for the same image brightness: fewer
+        photons per unit intensity and more read noise relative to it); shot_var x gain, read_sigma x sqrt(gain)."""
+        if not (gain >= 0 and math.isfinite(gain)):
+            raise BadInputError(f"a noise gain must be finite and >= 0, got {gain}", where="noise model")
+        return NoiseModel(tuple(s * gain for s in self.shot_var), tuple(r * math.sqrt(gain) for r in self.read_sigma),  # type: ignore[arg-type]
+                          f"{self.source} x {gain:.3g}" if self.source else "")
 
     @overload
     def variance(self, img: Tensor, channel_axis: int | None = None) -> Tensor: ...
