@@ -201,12 +201,9 @@ class RandomCaptures:
     def __post_init__(self) -> None:
         if self.per_view < 1:
             raise BadInputError(f"need at least one capture per view, got {self.per_view}")
-        for name in ("coc_px", "noise_gain"):
-            if getattr(self, name) is None and name == "coc_px":
-                continue
-            lo, hi = getattr(self, name)
-            if not (0 < lo <= hi and math.isfinite(hi)):
-                raise BadInputError(f"{name} must be a range 0 < low <= high, got {lo}:{hi}")
+        for name, rng in (("coc_px", self.coc_px), ("noise_gain", self.noise_gain)):
+            if rng is not None and not (0 < rng[0] <= rng[1] and math.isfinite(rng[1])):
+                raise BadInputError(f"{name} must be a range 0 < low <= high, got {rng[0]}:{rng[1]}")
 
     def draw(self, rng: np.random.Generator, depth_mm: NDArray[np.floating], f_numbers: Sequence[float],
              focal_length_mm: float) -> tuple[tuple[float, float], float, float, float, float]:
