@@ -15,6 +15,8 @@ def _range(text: str, option: str) -> tuple[float, float]:
         lo, hi = (float(v) for v in text.split(":"))
     except ValueError as exc:
         raise BadInputError(f"must look like LOW:HIGH, got {text!r}", where=option) from exc
+    if not 0 < lo <= hi < float("inf"):
+        raise BadInputError(f"must be a range 0 < LOW <= HIGH, got {text!r}", where=option)
     return lo, hi
 
 

@@ -131,3 +131,5 @@ def test_random_captures_draw_focus_f_number_sensor_format_and_gain(tmp_path: Pa
     assert len(set(np.round(focus))) >= 6 and len(set(fns)) >= 3 and len(set(pitches)) == 9 and len(set(gains)) == 9
     bad = CliRunner().invoke(main, [*args[:3], str(tmp_path / "bad"), *args[4:], "--coc-px", "6"])
     assert bad.exit_code != 0 and "--coc-px" in bad.output and not (tmp_path / "bad").exists()
+    bad = CliRunner().invoke(main, [*args[:3], str(tmp_path / "bad"), *args[4:], "--noise-gain", "30:1"])
+    assert bad.exit_code != 0 and "--noise-gain" in bad.output and not (tmp_path / "bad").exists()
