@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dp5k_common.sensor_noise import MEDIAN_CHI2_1, WHITE_NOISE_GAIN, noise_model_fit, white_part
+from dp5k_common.sensor_noise import local_high_pass as _high_pass
 from neural_dp.registry import BaseModel
 from neural_dp.registry import Noise
 
@@ -99,44 +101,12 @@ MIN_NOISE_PX_PER_IMAGE = 16
 """An image (or crop) adds noise samples only with at least this many usable pixels (px)."""
 
 
-WHITE_NOISE_KERNEL = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]]) / 6.0
-r"""The 3 x 3 filter that isolates white noise in ``d`` (Immerkaer 1996): the product of a second difference in x
-and one in y, so it is blind to anything linear in x or in y and to what varies along one axis only; its
-squared weights sum to 1. The plain high-pass ``d - mean3x3(d)`` passes curvature: on another renderer's set
-whose off-axis DP split the base model's field_varying_psf only approximates, that residual read as 1.78 x
-the nominal noise variance (named ``noise``, threshold 1.5); this filter reads 1.26 there and 1.01 on a clean
-set (1.005 before)."""
-WHITE_NOISE_GAIN = 2.0
-r"""E[h^2] / sigma^2 for h = :data:`WHITE_NOISE_KERNEL` * (L - R) with independent noise of variance sigma^2
-in each view (two views, unit kernel energy)."""
-
-
 MIN_NOISE_SAMPLES = 256
 """Fewest flat noise samples (pixel x channel values) over all pairs to measure noise at all."""
 
 
 MIN_PAIR_NOISE_SAMPLES = 32
 """Fewest flat noise samples (pixel x channel values) for a pair's own variance ratio (a unit of the test)."""
-
-
-NOISE_INTENSITY_BINS = 8
-"""Intensity quantile bins through whose median variances the noise model line is fitted."""
-
-
-def _high_pass(x: Tensor) -> Tensor:
-    """``x - mean3x3(x)`` (replicated border), (B, C, H, W): local texture energy, to find flat regions."""
-    return x - F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
-
-
-def white_part(x: Tensor) -> Tensor:
-    """``x`` (B, C, H, W) filtered by :data:`WHITE_NOISE_KERNEL` (replicated border)."""
-    C = x.shape[1]
-    k = WHITE_NOISE_KERNEL.to(x.dtype).expand(C, 1, 3, 3)
-    return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), k, groups=C)
-
-
-MEDIAN_CHI2_1 = 0.4549364
-"""Median of the chi^2 distribution with one degree of freedom (median of z^2 for z ~ N(0, 1))."""
 
 
 def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: DetectConfig, base_mse: float | None = None) -> Finding:
@@ -174,20 +144,6 @@ def test_noise(base: BaseModel, fit: list[Sample], det: list[Sample], cfg: Detec
               "excess_fraction": float(min(excess_var / max(base_mse, 1e-20), 1.0))}
     detected = bool(p < cfg.alpha and effect > cfg.threshold("noise"))
     return Finding("noise", t, p, effect, detected, params, EXPLAIN["noise"].format(**params), model, intervals=intervals, stage="measured")
-
-
-def noise_model_fit(v: np.ndarray, inten: np.ndarray, nominal: np.ndarray) -> tuple[float, np.ndarray]:
-    """(variance ratio to the nominal sensor, [shot_var, read_sigma^2]) from flat-region noise samples ``v``
-    (linear units^2), their intensities and nominal variances: the robust ratio and a least-squares line
-    through the medians of :data:`NOISE_INTENSITY_BINS` intensity bins."""
-    rho = float(np.median(v / nominal) / MEDIAN_CHI2_1)
-    nb = NOISE_INTENSITY_BINS
-    edges = np.quantile(inten, np.linspace(0, 1, nb + 1))
-    which = np.clip(np.searchsorted(edges, inten, side="right") - 1, 0, nb - 1)
-    rows = [(float(inten[which == j].mean()), float(np.median(v[which == j]) / MEDIAN_CHI2_1)) for j in range(nb) if np.any(which == j)]
-    A = np.array([[i, 1.0] for i, _ in rows])
-    coef, *_ = np.linalg.lstsq(A, np.array([val for _, val in rows]), rcond=None)
-    return rho, coef
 
 
 NOISE_BOOT = 200

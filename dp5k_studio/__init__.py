@@ -29,10 +29,10 @@ Exports: ``make_rig, Rig, CameraModel, ProjectorModel`` (rig.py); ``make_scene, 
 plane_scene, wall_board_pose`` (scenes.py); ``Studio`` (studio.py); ``RawExposure, SensorModel``
 (sensor.py); ``EffectSet, parse_effect, parse_effects, effect_parameters`` (effects.py);
 ``LensSetting, render_dp, plan_dp, DPPlan, left_kernel, coc_channels_px`` (dp_optics.py); ``make_dataset,
-make_dataset_from_rgbd, pair_from_rgbd, RenderedPair`` (dataset.py).
+make_dataset_from_rgbd, pair_from_rgbd, RenderedPair, RandomCaptures`` (dataset.py).
 """
 
-from .dataset import PAPER_F_NUMBERS, RenderedPair, make_dataset, make_dataset_from_rgbd, pair_from_rgbd
+from .dataset import PAPER_F_NUMBERS, RandomCaptures, RenderedPair, make_dataset, make_dataset_from_rgbd, pair_from_rgbd
 from .dp_optics import DPPlan, DPRender, LensSetting, coc_channels_px, left_kernel, plan_dp, render_dp
 from .effects import EffectSet, effect_parameters, parse_effect, parse_effects
 from .rig import SCALES, CameraModel, ProjectorModel, Rig, make_rig
@@ -42,7 +42,7 @@ from .studio import Studio
 
 __all__ = [
     "PAPER_F_NUMBERS", "PRESETS", "SCALES", "DEFAULT_SENSOR",
-    "CameraModel", "DPPlan", "DPRender", "EffectSet", "LensSetting", "ProjectorModel", "RawExposure", "RenderedPair", "Rig",
+    "CameraModel", "DPPlan", "DPRender", "EffectSet", "LensSetting", "ProjectorModel", "RandomCaptures", "RawExposure", "RenderedPair", "Rig",
     "Scene", "SensorModel", "Studio",
     "coc_channels_px", "effect_parameters", "left_kernel", "make_dataset", "make_dataset_from_rgbd", "make_rig", "make_scene",
     "pair_from_rgbd", "parse_effect", "parse_effects", "plan_dp", "plane_scene", "render_dp", "wall_board_pose",

@@ -9,6 +9,17 @@ import click
 from dp5k_common.errors import BadInputError
 
 
+def _range(text: str, option: str) -> tuple[float, float]:
+    """``LO:HI`` -> (lo, hi) floats (a one-line error naming the option otherwise)."""
+    try:
+        lo, hi = (float(v) for v in text.split(":"))
+    except ValueError as exc:
+        raise BadInputError(f"must look like LOW:HIGH, got {text!r}", where=option) from exc
+    if not 0 < lo <= hi < float("inf"):
+        raise BadInputError(f"must be a range 0 < LOW <= HIGH, got {text!r}", where=option)
+    return lo, hi
+
+
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -34,13 +45,32 @@ def studio_group() -> None:
 @click.option("--overwrite", is_flag=True, help="Replace an existing dataset's pairs.")
 @click.option("--from", "source", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Re-render the DP views of this format-v1 dataset (any RGBD source) instead of studio scenes.")
+@click.option("--camera", "cameras", type=click.IntRange(0, 1), multiple=True,
+              help="Render this body only (repeatable; default both).")
+@click.option("--all-in-focus-sharp", is_flag=True,
+              help="Write the rendered radiance as sharp (sharp_f_number 0) instead of the f/22 capture.")
+@click.option("--random-captures", type=click.IntRange(min=1), default=None,
+              help="Instead of every f-number at the scene's own focus: this many captures per scene and camera, each "
+                   "with a random focus, f-number (from --f-numbers), sensor format and gain (training data that "
+                   "transfers, docs/deblur.md).")
+@click.option("--coc-px", default="1:12", show_default=True,
+              help="With --random-captures: the 99th-percentile |CoC| at f/1.8 is drawn log-uniform from LOW:HIGH px "
+                   "(the sensor format); 'rig' keeps the rig's full-frame sensor.")
+@click.option("--noise-gain", default="1:30", show_default=True,
+              help="With --random-captures: the views' noise variance times a log-uniform LOW:HIGH (the sensor gain).")
 def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...], effects: tuple[str, ...], size: str,
-                         f_numbers: str, seed: int, no_noise: bool, overwrite: bool, source: Path | None) -> None:
-    """Render a format-v1 dataset (scene x camera x f-number pairs) into OUT."""
-    from .dataset import make_dataset, make_dataset_from_rgbd
+                         f_numbers: str, seed: int, no_noise: bool, overwrite: bool, source: Path | None,
+                         cameras: tuple[int, ...], all_in_focus_sharp: bool, random_captures: int | None, coc_px: str,
+                         noise_gain: str) -> None:
+    """Render a format-v1 dataset (scene x camera x f-number pairs, or x random captures) into OUT."""
+    from .dataset import RandomCaptures, make_dataset, make_dataset_from_rgbd
     from .effects import parse_effects
 
     eff = parse_effects(effects)
+    captures = None
+    if random_captures is not None:
+        captures = RandomCaptures(random_captures, None if coc_px == "rig" else _range(coc_px, "--coc-px"),
+                                  _range(noise_gain, "--noise-gain"))
     if source is not None:
         path = make_dataset_from_rgbd(out, source, eff, seed=seed, overwrite=overwrite, noise=not no_noise)
         click.echo(f"wrote {path} from {source} ({', '.join(eff.names()) or 'no effects'})")
@@ -51,7 +81,8 @@ def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...],
         raise BadInputError(f"--f-numbers must be comma-separated numbers, got {f_numbers!r}") from exc
     scenes = list(scene_names) if scene_names else n_scenes
     path = make_dataset(out, scenes=scenes, effects=eff, size=_size(size), f_numbers=fns, seed=seed,
-                        overwrite=overwrite, noise=not no_noise)
+                        overwrite=overwrite, noise=not no_noise, cameras=cameras or (0, 1),
+                        all_in_focus_sharp=all_in_focus_sharp, random_captures=captures)
     click.echo(f"wrote {path} ({', '.join(eff.names()) or 'no effects'})")
 
 

@@ -4,7 +4,9 @@ Two sources, one renderer (dp_optics.render_dp, the same optics as ``Studio.expo
 
 * :func:`pair_from_rgbd`: any RGBD input (sharp image + depth + imaging parameters) -> sharp / left / right /
   depth / CoC arrays;
-* :func:`make_dataset`: studio scenes (random seeds or presets) x cameras x f-numbers -> a dataset folder.
+* :func:`make_dataset`: studio scenes (random seeds or presets) x cameras x f-numbers -> a dataset folder; or,
+  with :class:`RandomCaptures`, scenes x cameras x captures of random focus, f-number, sensor format and gain
+  (training data that transfers, issue 33).
 
 Output conventions (docs/data-format.md): ``sharp`` is the f/22 frame of the same lens on the same linear
 scale (diffraction included, noise free); ``left + right`` ~ the full-aperture blur of ``sharp`` (Eq. 2);
@@ -17,9 +19,10 @@ parameters; ground truth for tests, never to be read by diagnose to decide), ``"
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +34,7 @@ from dp5k_common.dataset import PairParams, split_scenes, write_index, write_pai
 from dp5k_common.errors import BadInputError
 from dp5k_common.optics import coc_diameter_px
 from dp5k_common.progress import progress
+from dp5k_common.sensor_noise import NOMINAL_READ_SIGMA, NOMINAL_SHOT_VAR, NoiseModel
 
 from .dp_optics import LensSetting, render_dp
 from .effects import EffectSet, effect_parameters, parse_effects
@@ -39,10 +43,13 @@ from .rig import FOCAL_LENGTH_MM, SENSOR_SIZE_MM, make_rig
 from .scenes import make_scene
 
 PAPER_F_NUMBERS: tuple[float, ...] = (1.8, 2.0, 2.8, 4.0, 5.6)
+CAPTURE_STREAM = 0x63617074
+"""Second word of the seed of :class:`RandomCaptures`' draws (a stream apart from the noise's)."""
 SHARP_F_NUMBER = 22.0
-NOISE_SHOT = 2.0e-5
-"""Nominal shot-noise variance per unit linear intensity (a ~50 000 e- full well scaled to [0, 1])."""
-NOISE_READ = 1.0e-3
+NOISE_SHOT = NOMINAL_SHOT_VAR
+"""Nominal shot-noise variance per unit linear intensity (a ~50 000 e- full well scaled to [0, 1]; the project's
+nominal sensor, ``dp5k_common.sensor_noise``)."""
+NOISE_READ = NOMINAL_READ_SIGMA
 """Nominal read-noise sigma in linear units."""
 
 
@@ -66,11 +73,11 @@ def _diffraction(img: NDArray[np.float32], f_number: float, pitch_mm: float) -> 
     return cv2.GaussianBlur(img, (0, 0), sig, borderType=cv2.BORDER_REFLECT)
 
 
-def add_view_noise(img: NDArray[np.float32], effects: EffectSet, rng: np.random.Generator) -> NDArray[np.float32]:
-    """Nominal signal-dependent Gaussian noise in linear units, raised by the ``noise`` effect."""
+def view_noise(effects: EffectSet, gain: float = 1.0) -> NoiseModel:
+    """The views' sensor noise: nominal, raised by the ``noise`` effect, at ``gain`` x the variance (ISO)."""
     nz = effect_parameters("noise", effects.s("noise"))
-    var = NOISE_SHOT * nz["shot_var_factor"] * np.maximum(img, 0.0) + (NOISE_READ * nz["read_sigma_factor"]) ** 2
-    return (img + rng.standard_normal(img.shape).astype(np.float32) * np.sqrt(var).astype(np.float32)).astype(np.float32)
+    model = NoiseModel.uniform(NOISE_SHOT * nz["shot_var_factor"], NOISE_READ * nz["read_sigma_factor"])
+    return model if gain == 1.0 else model.scaled(gain)
 
 
 @dataclass
@@ -100,6 +107,7 @@ def pair_from_rgbd(
     noise: bool = True,
     sharp_is_pinhole: bool = False,
     hidden: tuple[NDArray[np.floating], NDArray[np.floating]] | None = None,
+    noise_gain: float = 1.0,
 ) -> RenderedPair:
     """Render "measured" DP views from an RGBD frame.
 
@@ -118,6 +126,7 @@ def pair_from_rgbd(
             kept as the sharp image.
         hidden: optional ``(radiance, depth_mm)`` of the surfaces behind the visible ones (studio scenes
             know them), for exact partial occlusion at depth edges.
+        noise_gain: the views' noise variance times this (a sensor gain, ISO; :func:`view_noise`).
 
     Returns:
         :class:`RenderedPair`.
@@ -143,22 +152,81 @@ def pair_from_rgbd(
         sharp_out = _diffraction(sh, SHARP_F_NUMBER, pitch)
     else:
         sharp_out = img
+    nz = view_noise(eff, noise_gain)
     if noise:
-        left = add_view_noise(left, eff, rng)
-        right = add_view_noise(right, eff, rng)
+        left = nz.sample(left, rng)
+        right = nz.sample(right, rng)
     valid = np.isfinite(z) & (z > 0)
     depth_out = np.where(valid, np.clip(np.rint(z), 0, 65535), 0.0).astype(np.float32)  # depth.png holds whole mm
     valid &= depth_out > 0
     coc = coc_diameter_px(depth_out, float(focus_distance_mm), float(focal_length_mm), float(f_number), pitch)
-    nz = effect_parameters("noise", eff.s("noise"))
     extra = {
         "effects": eff.to_json((W, H)),
         "true_focus_distance_mm": F_true,
         "sharp_f_number": SHARP_F_NUMBER if sharp_is_pinhole else 0.0,  # 0: sharp is the input radiance
-        "noise": {"shot_var": NOISE_SHOT * nz["shot_var_factor"], "read_sigma": NOISE_READ * nz["read_sigma_factor"]} if noise else None,
+        "noise": {"shot_var": nz.shot_var[0], "read_sigma": nz.read_sigma[0]} if noise else None,
     }
     return RenderedPair(np.clip(sharp_out, 0, 1).astype(np.float32), np.clip(left, 0, 1), np.clip(right, 0, 1),
                         depth_out, np.where(valid, coc, np.nan).astype(np.float32), extra)
+
+
+REFERENCE_F_NUMBER = 1.8
+"""The f-number at which :class:`RandomCaptures` states a capture's blur range (the widest of the paper's)."""
+
+
+@dataclass(frozen=True)
+class RandomCaptures:
+    """Captures drawn at random, for training data that transfers to cameras and renderers not seen (issue 33).
+
+    Per scene and camera, ``per_view`` captures, each its own:
+
+    * **focus**: on the surface under a random point of the frame's central 80 % (the point is ``focus_point_px``);
+    * **f-number**: drawn from ``make_dataset``'s ``f_numbers`` (the paper's 1.8-5.6 by default);
+    * **sensor format**: the pixel pitch that puts the 99th percentile of |CoC| at f/1.8 at a log-uniform draw from
+      ``coc_px`` (px). At a fixed field of view and f-number, a sensor ``s`` x as large blurs ``s`` x as many pixels,
+      so this is the format of the camera (a phone's to a full frame's; the paper's Sec. 5.3.1 adjustment, drawn);
+      None keeps the rig's full-frame sensor;
+    * **sensor gain**: the views' noise variance (:func:`view_noise`) times a log-uniform draw from ``noise_gain``
+      (an ISO that many times higher: shot variance x gain, read sigma x sqrt(gain)).
+
+    The default ranges are for frames about 100 px wide: at 96 x 64 the studio's own full-frame 85 mm lens blurs the
+    99th percentile by 2.5-37 px at f/1.8 (median 16) with a random focus, which a deblurrer learns as "everything
+    is far out of focus" (docs/deblur.md).
+    """
+
+    per_view: int = 1
+    coc_px: tuple[float, float] | None = (1.0, 12.0)
+    noise_gain: tuple[float, float] = (1.0, 30.0)
+
+    def __post_init__(self) -> None:
+        if self.per_view < 1:
+            raise BadInputError(f"need at least one capture per view, got {self.per_view}")
+        for name, rng in (("coc_px", self.coc_px), ("noise_gain", self.noise_gain)):
+            if rng is not None and not (0 < rng[0] <= rng[1] and math.isfinite(rng[1])):
+                raise BadInputError(f"{name} must be a range 0 < low <= high, got {rng[0]}:{rng[1]}")
+
+    def draw(self, rng: np.random.Generator, depth_mm: NDArray[np.floating], f_numbers: Sequence[float],
+             focal_length_mm: float) -> tuple[tuple[float, float], float, float, float, float]:
+        """One capture of a view with z-depth ``depth_mm`` (H, W; inf / NaN = nothing hit) through a lens of
+        ``focal_length_mm``: ((x, y) focus point px, focus distance mm, f-number, pixel pitch mm, noise gain)."""
+        H, W = depth_mm.shape
+        finite = np.isfinite(depth_mm) & (depth_mm > 1.5 * focal_length_mm)
+        x, y = W / 2, H / 2
+        focus = float(np.median(depth_mm[finite]))
+        for _ in range(50):
+            px, py = int(rng.integers(W // 10, W - W // 10)), int(rng.integers(H // 10, H - H // 10))
+            if finite[py, px]:
+                x, y, focus = float(px), float(py), float(depth_mm[py, px])
+                break
+        n = float(f_numbers[int(rng.integers(len(f_numbers)))])
+        pitch = SENSOR_SIZE_MM[0] / W
+        if self.coc_px is not None:
+            c_mm = np.abs(coc_diameter_px(depth_mm[finite], focus, focal_length_mm, REFERENCE_F_NUMBER, 1.0))  # on the sensor
+            p99 = float(np.percentile(c_mm, 99))
+            if p99 > 0:
+                pitch = p99 / math.exp(rng.uniform(*np.log(self.coc_px)))
+        gain = math.exp(rng.uniform(*np.log(self.noise_gain)))
+        return (x, y), focus, n, pitch, gain
 
 
 def _scene_list(scenes: int | Sequence[str | int], seed: int) -> list[str | int]:
@@ -181,6 +249,7 @@ def make_dataset(
     overwrite: bool = False,
     noise: bool = True,
     all_in_focus_sharp: bool = False,
+    random_captures: RandomCaptures | None = None,
 ) -> Path:
     """Write a format-v1 dataset of studio scenes with planted effects.
 
@@ -197,6 +266,10 @@ def make_dataset(
         noise: add nominal noise to the DP views.
         all_in_focus_sharp: write the rendered radiance as ``sharp`` (``sharp_f_number`` 0) instead of the
             f/22 capture, as a generator that blurs ``sharp`` itself would.
+        random_captures: instead of every f-number at the scene's own focus with the rig's sensor, draw this many
+            captures per scene and camera, each with its own focus, f-number (from ``f_numbers``), sensor format
+            and gain (:class:`RandomCaptures`); pair ids ``<scene>_<camera>_c<k>``, and params.json's extra
+            ``capture`` holds the draws.
 
     Returns:
         The dataset folder. Pair ids are ``<scene>_<camera>_f<N>``; splits are by scene.
@@ -210,6 +283,7 @@ def make_dataset(
         raise BadInputError("dataset already exists (pass overwrite to replace it)", where=out / "dataset.json")
     rig = make_rig(6720.0 / W)
     rng = np.random.default_rng(seed)
+    draws = np.random.default_rng([int(seed), CAPTURE_STREAM])  # apart from the noise: the same captures with or without it
     scene_ids: dict[str, list[str]] = {}
     items = _scene_list(scenes, seed)
     jobs = [(sc, cam) for sc in items for cam in cameras]
@@ -220,6 +294,20 @@ def make_dataset(
         radiance = geom.radiance(None)
         depth_mm = geom.depth_m * 1000.0
         hidden = (geom.hidden_radiance(None), geom.hidden["depth_m"] * 1000.0) if geom.hidden is not None else None
+        if random_captures is not None:
+            for k in range(random_captures.per_view):
+                point, focus, n, pitch, gain = random_captures.draw(draws, depth_mm, f_numbers, cam.focal_length_mm)
+                rp = pair_from_rgbd(radiance, depth_mm, f_number=n, focus_distance_mm=focus,
+                                    focal_length_mm=cam.focal_length_mm, pixel_pitch_mm=pitch, effects=eff, rng=rng,
+                                    noise=noise, sharp_is_pinhole=not all_in_focus_sharp, hidden=hidden, noise_gain=gain)
+                pair_id = f"{scene.name}_{cam.name}_c{k}"
+                params = PairParams(pair_id, scene.name, cam.name, n, focus, cam.focal_length_mm, pitch, point, (W, H),
+                                    {**rp.extra, "source": "studio", "scene_seed": scene.seed,
+                                     "capture": {"noise_gain": gain, "sensor_scale": SENSOR_SIZE_MM[0] / W / pitch}})
+                write_pair(out, params, sharp=rp.sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm,
+                           coc_px=rp.coc_px, overwrite=overwrite, sub_mm_depth=True)
+                scene_ids.setdefault(scene.name, []).append(pair_id)
+            continue
         Xc = cam.R @ scene.focus_target_m + cam.t
         uv = cam.K @ (Xc / Xc[2])
         fx = float(np.clip(np.rint(uv[0]), 0, W - 1))
@@ -246,7 +334,8 @@ def make_dataset(
     splits = {name: [pid for sc in scs for pid in scene_ids[sc]] for name, scs in split.items()}
     write_index(out, splits, effects=eff.to_json((W, H)),
                 generator={"tool": "dp5k studio make-dataset", "seed": int(seed), "size": [W, H],
-                           "f_numbers": [float(n) for n in f_numbers], "scenes": [str(s) for s in items]})
+                           "f_numbers": [float(n) for n in f_numbers], "scenes": [str(s) for s in items],
+                           **({"random_captures": asdict(random_captures)} if random_captures is not None else {})})
     return out
 
 

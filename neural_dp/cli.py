@@ -101,12 +101,16 @@ def evaluate_command(dataset: Path, split: str, out_dir: Path | None, simulators
 @click.option("--encoding", type=click.Choice(["srgb", "linear"]), default="srgb", show_default=True,
               help="How image.png is encoded.")
 @click.option("--depth-scale", type=float, default=1.0, show_default=True, help="depth.npy values x this = mm.")
+@click.option("--noise", "noise", metavar="SPEC", default="nominal", show_default=True,
+              help="Sensor noise on the views (shot + read per channel, linear): nominal (variance 2e-5 I + (1e-3)^2), "
+                   "none, measured:DATASET (measured from a dataset's views), diagnosed:REPORT.json, or "
+                   "shot=S,read=R (per channel S:S:S). Drawn from --seed.")
 @click.option("--batch-size", type=int, default=4, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True)
 def synthesize_command(in_dir: Path, out_dir: Path, simulator: str | None, checkpoint: Path | None,
                        f_numbers: tuple[float, ...], focus_mm: float | None, max_coc_px: float, no_sensor_adjust: bool,
-                       sensor_width_mm: float, encoding: str, depth_scale: float, batch_size: int, seed: int,
+                       sensor_width_mm: float, encoding: str, depth_scale: float, noise: str, batch_size: int, seed: int,
                        device: str) -> None:
     """Turn RGBD frames IN_DIR/<frame>/{image.png, depth.png|depth.npy, intrinsics.json} into a DP dataset OUT_DIR.
 
@@ -126,7 +130,7 @@ def synthesize_command(in_dir: Path, out_dir: Path, simulator: str | None, check
         simulator=str(SimulatorSpec.parse(simulator or "neural", checkpoint)),
         f_numbers=tuple(f_numbers) or PAPER_F_NUMBERS, focus_mm=focus_mm,
         max_coc_px=None if no_sensor_adjust else max_coc_px, sensor_width_mm=sensor_width_mm, encoding=encoding,
-        depth_scale=depth_scale, batch_size=batch_size, seed=seed, device=device,
+        depth_scale=depth_scale, batch_size=batch_size, seed=seed, device=device, noise=noise,
     )
     summary = synthesize(in_dir, out_dir, cfg)
     rank = f" (rank {summary['rank']} of {summary['world_size']})" if summary["world_size"] > 1 else ""

@@ -22,6 +22,15 @@ Per frame:
    released code passes a focal length in mm where pixels are expected; here Eq. 6 gets mm and divides
    by the pitch in mm.
 4. **Simulation** with any registered simulator, in batches of frames of equal size.
+5. **Sensor noise** (``--noise``, :mod:`dp5k_common.sensor_noise`): shot plus read noise per channel on both
+   views, after the simulator (whose output is an expectation) and before the clip to [0, 1]; by default the
+   nominal sensor (variance ``2e-5 I + (1e-3)^2``, the studio's), or ``measured:DATASET`` (measured from a
+   dataset's own views), ``diagnosed:REPORT.json`` (what ``dp5k diagnose`` measured), ``shot=..,read=..``, or
+   ``none`` (the noise-free views of before). Each frame's noise comes from its own generator, seeded by
+   ``(seed, frame name)`` apart from the optics' draws: the same seed gives the same bytes whatever the batch
+   size or rank count, and the noise setting never changes the drawn optics. ``sharp`` stays the frame's image, noise
+   free: the frames are renders or clean photographs, and a deblurrer's target should be as clean as it can be
+   (a captured f/22 ``sharp`` has noise of its own; zero-mean noise in a target only adds variance to the loss).
 
 Output is a format-v1 dataset (one pair per frame, scene = frame, whole frames assigned to
 train/val/test with :func:`~dp5k_common.dataset.split_scenes`). Finished pairs are kept: a second run
@@ -62,6 +71,7 @@ from dp5k_common.errors import BadInputError, PartialFailureError
 from dp5k_common.io import read_image_raw, read_json
 from dp5k_common.optics import coc_diameter_px, thin_lens_focal_length_mm
 from dp5k_common.progress import progress
+from dp5k_common.sensor_noise import NoiseModel, noise_from_spec
 from dp5k_common.sharding import RankInfo, rank_info, shard
 from dp5k_common.transfer import srgb_to_linear
 from dp5k_learn.batch import DPBatch
@@ -103,6 +113,9 @@ class SynthConfig:
     batch_size: int = 4
     seed: int = 0
     device: str = "cpu"
+    noise: str = "nominal"
+    """The views' sensor noise (:func:`~dp5k_common.sensor_noise.noise_from_spec`): ``nominal``, ``none``,
+    ``measured:DATASET``, ``diagnosed:REPORT.json`` or ``shot=..,read=..``."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -228,6 +241,15 @@ def _frame_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
 
 
+NOISE_STREAM = 0x6E6F6973
+"""Third word of a frame's noise seed, so that its noise never shares a stream with its optics' draws."""
+
+
+def _noise_rng(seed: int, name: str) -> np.random.Generator:
+    """The generator of one frame's sensor noise: depends only on (seed, frame name)."""
+    return np.random.default_rng([seed, zlib.crc32(name.encode()), NOISE_STREAM])
+
+
 def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cfg: SynthConfig) -> dict[str, Any]:
     """Convert every frame folder of ``in_dir`` into a pair of the dataset ``out_dir`` (resumable, shardable).
 
@@ -239,13 +261,14 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         "world_size": N}``; written / skipped / failed count this rank's share, pairs the whole dataset.
 
     Raises:
-        BadInputError: a bad simulator spec or a missing checkpoint / report (checked first), ``in_dir`` has no frame
-            folders, or bad options.
+        BadInputError: a bad simulator spec, a missing checkpoint / report or a bad noise spec (checked first),
+            ``in_dir`` has no frame folders, bad options, or ``out_dir`` holds pairs synthesized with other noise.
         PartialFailureError: some frames of this rank's share failed (the others were written; the index
             lists every pair written by any rank).
     """
     spec = SimulatorSpec.parse(cfg.simulator, cfg.checkpoint)
     spec.check_files()
+    noise = noise_from_spec(cfg.noise)
     src, out = Path(in_dir), Path(out_dir)
     if not src.is_dir():
         raise BadInputError("input folder not found", where=src)
@@ -254,12 +277,13 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
         raise BadInputError("no frame folders (expected IN/<frame>/image.png, depth, intrinsics.json)", where=src)
     if not cfg.f_numbers or any(n <= 0 for n in cfg.f_numbers):
         raise BadInputError(f"f-numbers must be positive, got {cfg.f_numbers}", where="synthesize")
+    _check_same_noise(out, noise)
     info = rank_info()
     with _rank_group(info):
-        summary = _synthesize_share(out, frames, shard(frames, info), info, spec, cfg)
+        summary = _synthesize_share(out, frames, shard(frames, info), info, spec, cfg, noise)
         _wait_for_all_ranks(info)
         if info.is_main:
-            _write_index(out, frames, _split_of(frames, cfg.seed), spec, cfg)
+            _write_index(out, frames, _split_of(frames, cfg.seed), spec, cfg, noise)
         _wait_for_all_ranks(info)
     summary["pairs"] = len(DatasetReader(out).ids())
     failed = summary["failed"]
@@ -273,9 +297,26 @@ def synthesize(in_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], 
     return summary
 
 
+def _check_same_noise(out: Path, noise: NoiseModel | None) -> None:
+    """Refuse to add pairs with other noise to a dataset synthesized before (a resumed run must not mix noise
+    levels); a dataset written before synthesis had noise records none and was noise free."""
+    index = out / "dataset.json"
+    if not index.is_file():
+        return
+    recorded = read_json(index).get("noise_model")
+    before = None if recorded is None else NoiseModel.from_json(recorded, index)
+    numbers = lambda m: None if m is None else (m.shot_var, m.read_sigma)  # noqa: E731
+    if numbers(before) != numbers(noise):
+        was = "without noise" if before is None else f"with noise {before.source or before.to_json()}"
+        now = "none" if noise is None else noise.source
+        raise BadInputError(f"was synthesized {was}; this run asks for --noise {now}: resume with the same --noise "
+                            "or write to another folder", where=out)
+
+
 def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], info: RankInfo, spec: SimulatorSpec,
-                      cfg: SynthConfig) -> dict[str, Any]:
-    """Write the pairs of this rank's frames ``mine`` that are not on disk yet; rank 0 keeps the index current."""
+                      cfg: SynthConfig, noise: NoiseModel | None) -> dict[str, Any]:
+    """Write the pairs of this rank's frames ``mine`` that are not on disk yet, with ``noise`` on the views; rank 0
+    keeps the index current."""
     device = str(resolve_device(cfg.device, info.local_rank))
     sim = spec.load().to(device)
     sim.eval()
@@ -298,13 +339,16 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
             with torch.no_grad():
                 left, right = sim(batch)
             for k, (frame, params, coc) in enumerate(items):
-                write_pair(out, params, sharp=frame.image, left=np.clip(left[k].permute(1, 2, 0).cpu().numpy(), 0, 1),
-                           right=np.clip(right[k].permute(1, 2, 0).cpu().numpy(), 0, 1), depth_mm=frame.depth_mm,
-                           coc_px=np.nan_to_num(coc, nan=0.0), overwrite=True)
+                views = [v[k].permute(1, 2, 0).cpu().numpy() for v in (left, right)]
+                if noise is not None:
+                    rng = _noise_rng(cfg.seed, frame.name)
+                    views = [noise.sample(v, rng) for v in views]
+                write_pair(out, params, sharp=frame.image, left=np.clip(views[0], 0, 1), right=np.clip(views[1], 0, 1),
+                           depth_mm=frame.depth_mm, coc_px=np.nan_to_num(coc, nan=0.0), overwrite=True)
                 written += 1
         pending.clear()
         if info.is_main:  # one writer of dataset.json; the other ranks' pairs appear in it as they land
-            _write_index(out, frames, split_of, spec, cfg)
+            _write_index(out, frames, split_of, spec, cfg, noise)
 
     desc = f"synthesize (rank {info.rank}/{info.world_size})" if info.enabled else "synthesize"
     for folder in progress(todo, desc=desc, unit="frame"):
@@ -325,7 +369,8 @@ def _synthesize_share(out: Path, frames: Sequence[Path], mine: Sequence[Path], i
                 pair_id=pair_id(frame.name), scene=frame.name, camera="synth", f_number=n, focus_distance_mm=focus,
                 focal_length_mm=f_thin, pixel_pitch_mm=pitch, focus_point_px=point, image_size=(W, H),
                 extra={"synthetic": True, "sharp_f_number": 0.0, "simulator": str(spec), "source_frame": frame.name,
-                       "pinhole_fx_px": frame.fx_px, "sensor_scale": scale, **cfg.extra},
+                       "pinhole_fx_px": frame.fx_px, "sensor_scale": scale,
+                       "noise": None if noise is None else noise.to_json(), **cfg.extra},
             )
             pending.append((frame, params, coc))
         except BadInputError as exc:
@@ -413,12 +458,15 @@ def _make_batch(items: Sequence[tuple[Frame, PairParams, np.ndarray]], device: s
     ).to(device)
 
 
-def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], spec: SimulatorSpec, cfg: SynthConfig) -> None:
-    """dataset.json listing, in frame order, every frame whose pair is on disk, in its split."""
+def _write_index(out: Path, frames: Sequence[Path], split_of: dict[str, str], spec: SimulatorSpec, cfg: SynthConfig,
+                 noise: NoiseModel | None) -> None:
+    """dataset.json listing, in frame order, every frame whose pair is on disk, in its split, with the views' noise
+    model (``noise_model``; null: noise free)."""
     splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
     for f in frames:
         pid = pair_id(f.name)
         if (out / "pairs" / pid / "params.json").is_file():
             splits[split_of[f.name]].append(pid)
     write_index(out, splits, source="dp5k synthesize", simulator=str(spec),
-                synth_config=json.loads(json.dumps({k: v for k, v in cfg.__dict__.items() if k != "extra"}, default=str)))
+                synth_config=json.loads(json.dumps({k: v for k, v in cfg.__dict__.items() if k != "extra"}, default=str)),
+                noise_model=None if noise is None else noise.to_json())

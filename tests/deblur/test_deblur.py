@@ -14,11 +14,10 @@ from dp5k_cli import main
 from dp5k_deblur.model import DeblurNetConfig, DPDeblurNet
 from dp5k_deblur.train import target_mask
 from dp5k_studio import make_dataset
+from dp5k_testing.deblur_transfer import SUITE_TRAIN_ARGS
 
-TRAIN_ARGS = ["--crop", "48", "--batch-size", "8", "--lr", "2e-3", "--epochs", "30", "--device", "cpu",
-              "--set", "data.samples_per_epoch=80", "--set", "model.base_channels=12", "--set", "charbonnier_eps=0.1"]
-"""30 epochs x 10 steps = 300 Adam steps on 48 px crops; a Charbonnier epsilon that is quadratic below about 0.1 (at the
-paper's 1e-3, nearly L1, 300 steps barely move off the blurred input: docs/deblur.md)."""
+TRAIN_ARGS = SUITE_TRAIN_ARGS
+"""The suite's deblurrer and budget (300 Adam steps on 48 px crops; dp5k_testing/deblur_transfer.py)."""
 
 
 def studio_pairs(root: Path) -> Path:

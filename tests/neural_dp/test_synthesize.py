@@ -107,7 +107,7 @@ def test_base_simulator_reads_rgbd_frames_as_all_in_focus(tmp_path: Path) -> Non
 
     _frames(tmp_path / "in", n=1)
     synthesize(tmp_path / "in", tmp_path / "out", SynthConfig(simulator="base", f_numbers=(1.8,), depth_scale=1000.0,
-                                                               max_coc_px=12.0))
+                                                               max_coc_px=12.0, noise="none"))  # the optics alone
     reader = DatasetReader(tmp_path / "out")
     pair = reader.load(reader.ids()[0])
     assert pair.params.sharp_f_number == 0.0

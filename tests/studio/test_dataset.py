@@ -104,3 +104,32 @@ def test_rerender_an_rgbd_dataset_with_effects(dataset: Path, tmp_path: Path) ->
         assert set(b.params.extra["effects"]) == {"lr_gain_imbalance"}
         assert b.params.sharp_f_number == 0.0  # the source's sharp image was the radiance these views came from
         assert b.left.mean() / b.right.mean() == pytest.approx(1.2, abs=0.05)
+
+
+def test_random_captures_draw_focus_f_number_sensor_format_and_gain(tmp_path: Path) -> None:
+    """``--random-captures``: every capture its own focus, f-number, sensor format (99th-percentile |CoC| at f/1.8
+    inside ``--coc-px``) and gain (inside ``--noise-gain``), recorded in params.json; the draws are seeded."""
+    out = tmp_path / "rc"
+    args = ["-q", "studio", "make-dataset", str(out), "--scenes", "3", "--size", "48x32", "--camera", "0",
+            "--all-in-focus-sharp", "--random-captures", "3", "--coc-px", "2:6", "--noise-gain", "1:30", "--seed", "1"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    r = DatasetReader(out)
+    ids = r.ids()
+    assert len(ids) == 9 and all(pid.endswith(("_c0", "_c1", "_c2")) and "_cam0_" in pid for pid in ids)
+    focus, fns, pitches, gains = [], [], [], []
+    for pid in ids:
+        p = r.load(pid)
+        prm = p.params
+        cap = prm.extra["capture"]
+        assert 1.0 <= cap["noise_gain"] <= 30.0 and prm.extra["sharp_f_number"] == 0
+        assert prm.f_number in (1.8, 2.0, 2.8, 4.0, 5.6)
+        c = np.abs(p.coc_px[np.isfinite(p.coc_px)])
+        p99_at_18 = np.percentile(c, 99) * prm.f_number / 1.8  # CoC ~ 1 / N
+        assert 2.0 * 0.9 <= p99_at_18 <= 6.0 * 1.1, (pid, p99_at_18)  # depth.png rounds to whole mm
+        focus.append(prm.focus_distance_mm); fns.append(prm.f_number); pitches.append(prm.pixel_pitch_mm); gains.append(cap["noise_gain"])
+    assert len(set(np.round(focus))) >= 6 and len(set(fns)) >= 3 and len(set(pitches)) == 9 and len(set(gains)) == 9
+    bad = CliRunner().invoke(main, [*args[:3], str(tmp_path / "bad"), *args[4:], "--coc-px", "6"])
+    assert bad.exit_code != 0 and "--coc-px" in bad.output and not (tmp_path / "bad").exists()
+    bad = CliRunner().invoke(main, [*args[:3], str(tmp_path / "bad"), *args[4:], "--noise-gain", "30:1"])
+    assert bad.exit_code != 0 and "--noise-gain" in bad.output and not (tmp_path / "bad").exists()
