@@ -46,8 +46,11 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
                    "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
+@click.option("--threads", default=1, show_default=True, type=click.IntRange(0),
+              help="PyTorch threads while diagnosing (0 = PyTorch's default). Renders of ~100 px crops barely profit from more, and "
+                   "on shared cores waiting threads slow them down many times (docs/diagnose.md).")
 def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out_dir: Path | None, seed: int, fit_pairs: str,
-                     nominal_noise: str, neural_steps: int, sharp_f_number: str) -> None:
+                     nominal_noise: str, neural_steps: int, sharp_f_number: str, threads: int) -> None:
     """Fit the simulator on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
@@ -81,7 +84,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps))
     res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
-                                                          sharp_f_number=sharp_n))
+                                                          sharp_f_number=sharp_n, threads=threads))
     g = res["gain"]
     sr = res.get("sharp_reading") or {}
     if sr.get("source") == "selected":

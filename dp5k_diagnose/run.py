@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -47,6 +49,11 @@ class DiagnoseConfig:
         sharp_f_number: how to read ``sharp`` in pairs whose params.json does not state ``sharp_f_number``:
             None = choose (:data:`SHARP_READINGS`, :class:`SharpReading`), else that f-number (0 = all-in-focus).
         select: how every cause is chosen (:mod:`dp5k_diagnose.selection`).
+        threads: PyTorch intra-op threads while diagnosing (restored after; 0 = leave as set). The base model
+            renders crops of about 100 px node by node, which more threads barely speed up, and where the
+            cores are shared with other work, OpenMP threads that wait for each other slow it down many times:
+            the base fit of the demo's 12 pairs of 96 x 64 took 3.8 s of CPU at one thread and 82 s at two
+            (2-core machine at load 9, 2026-11-27).
     """
 
     fit_pairs: int | None = 4
@@ -60,6 +67,7 @@ class DiagnoseConfig:
     neural: NeuralReachConfig = field(default_factory=NeuralReachConfig)
     sharp_f_number: float | None = None
     select: SelectConfig = field(default_factory=SelectConfig)
+    threads: int = 1
 
 
 SHARP_READINGS = (SHARP_F_NUMBER, 0.0)
@@ -203,9 +211,26 @@ def auto_fit_pairs(dataset: str | Path) -> int | None:
     return None if small and has_val else DEFAULT_FIT_PAIRS
 
 
+@contextmanager
+def intra_op_threads(n: int) -> Iterator[None]:
+    """PyTorch's intra-op threads set to ``n`` (0: unchanged) inside the block, restored after."""
+    before = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def diagnose_base(dataset: str | Path, cfg: DiagnoseConfig | None = None) -> Diagnosis:
-    """Diagnose the physical base model on a format-v1 dataset."""
+    """Diagnose the physical base model on a format-v1 dataset (with :attr:`DiagnoseConfig.threads`)."""
     cfg = cfg or DiagnoseConfig()
+    with intra_op_threads(cfg.threads):
+        return _diagnose_base(dataset, cfg)
+
+
+def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig) -> Diagnosis:
     t0 = time.perf_counter()
     reader = DatasetReader(dataset)
     splits = choose_splits(reader, cfg)
@@ -413,6 +438,11 @@ def run_diagnose(dataset: str | Path, model: SimulatorSpec = SimulatorSpec(), ou
     """
     cfg = cfg or DiagnoseConfig()
     model.check_files()
+    with intra_op_threads(cfg.threads):
+        return _run_diagnose(dataset, model, out, cfg)
+
+
+def _run_diagnose(dataset: str | Path, model: SimulatorSpec, out: str | Path | None, cfg: DiagnoseConfig) -> dict[str, Any]:
     diag = diagnose_base(dataset, cfg)
     result = diag.to_json()
     reader = DatasetReader(dataset)

@@ -116,6 +116,8 @@ class Screen:
     corr: dict[tuple[str, str], float]
     values: dict[Key, float]
     candidates: list[str]
+    systematic: float = 0.0
+    """The fit crops' systematic squared error the shares are measured on."""
 
     def correlation(self, a: str, b: str) -> float:
         return self.corr.get(tuple(sorted((a, b))), 0.0)  # type: ignore[arg-type]
@@ -372,19 +374,22 @@ def canonical_corr(A: np.ndarray, a: list[int], b: list[int], nuis: list[int]) -
 
 
 def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sample], noise: Finding | None,
-                   cfg: DetectConfig, sel: SelectConfig, sharp: SharpNoise | None = None) -> Screen:
+                   cfg: DetectConfig, sel: SelectConfig, sharp: SharpNoise | None = None, least: float = 0.0) -> Screen:
     """The first-order screen of the effects ``new`` around the fitted ``model`` (the base model, or a model
     already holding some effects): the module docstring's step 1. The base model's gain, rim softness and
     pixel sampling are refitted in every step; the effects ``model`` already holds keep their fitted values
     (their columns would cost a render each, and the screen only proposes). Candidates: greedily, the effect
     that adds most to those already taken, while it adds at least :attr:`SelectConfig.screen_share` of its
-    threshold; and every effect whose unique part of the joint step of all effects is that large."""
+    threshold; and every effect whose unique part of the joint step of all effects is that large. Shares are
+    of the fit crops' systematic error around ``model``, but of at least ``least`` (a re-screen passes
+    :attr:`DetectConfig.remaining_floor` times the base model's: what little the confirmed causes leave is not a
+    scale to measure a further one on, as in the tests)."""
     point = model.replaced(sorted([copy.deepcopy(c) for c in model.components] + [copy.deepcopy(c) for c in new.values()],
                                   key=lambda c: c.stage))
     targets = [(c, n) for c in point.components if c.name in new for n in fittable_names(c, fit)]
     targets += [(point, "gain")] + [(point, k) for k in PSF_NUISANCE]
     lin = jacobian(point, targets, fit)
-    systematic = fit_systematic(fit, lin.sse, noise, cfg, sharp)
+    systematic = max(fit_systematic(fit, lin.sse, noise, cfg, sharp), least)
     idx = {n: lin.index(point.component(n)) for n in new}
     current = [i for i in range(len(targets)) if not any(i in v for v in idx.values())]
     neutral = {i: float(lin.theta[i]) for n in new for i in idx[n]}
@@ -424,7 +429,7 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
             corr[tuple(sorted((a, b)))] = canonical_corr(lin.A, idx[a], idx[b], current)
     x = lin.solve({i: v for i, v in neutral.items() if not any(i in idx[n] for n in candidates)})
     log.info("screen: %s -> candidates %s", {n: round(share[n], 3) for n in new}, candidates)
-    return Screen(share, alone, unique, corr, key_values(point, targets, x), candidates)
+    return Screen(share, alone, unique, corr, key_values(point, targets, x), candidates, systematic)
 
 
 def with_values(model: BaseModel, values: dict[Key, float]) -> BaseModel:
@@ -660,7 +665,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         rest = {n: comps[n] for n in comps if n not in conf.names}
         if k == sel.rescreens or not rest:
             break
-        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp)
+        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp, cfg.remaining_floor * screen.systematic)
         trace["rescreens"].append({"model": list(conf.names), **again.to_json()})
         for n in rest:
             screen.share[n] = max(screen.share.get(n, 0.0), again.share[n])
