@@ -41,13 +41,13 @@ from dp5k_common.dataset import DatasetReader, copy_pairs
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
 from dp5k_learn.config import DataConfig, OptimConfig
-from dp5k_learn.intervals import N_BOOT, Resampler
+from dp5k_learn.intervals import N_BOOT, Resampler, verdict
 from neural_dp.registry import (PAPER_F_NUMBERS, PEERS, ModelConfig, SimulatorSpec, SynthConfig, TrainConfig,
                                 synthesize, train)
 
 from .config import DeblurTrainConfig
 from .evaluate import DeblurScores, score
-from .study_tables import INPUT_ROW, Row, differences, figure, markdown, row_json, verdict
+from .study_tables import INPUT_ROW, Row, differences, figure, markdown, row_json
 from .train import load_deblurrer, train_deblur
 
 logger = logging.getLogger(__name__)

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dp5k_common.io import atomic_path
-from dp5k_learn.intervals import Estimate, Resampler
+from dp5k_learn.intervals import Difference, Estimate, Resampler
 
 from .evaluate import METRICS, DeblurScores
 
@@ -48,22 +48,6 @@ class Row:
         return cls(setting, values, simulator)
 
 
-@dataclass(frozen=True)
-class Difference:
-    """``a - b`` in PSNR (dB) over the same pairs and seeds."""
-
-    a: str
-    b: str
-    psnr: Estimate
-
-    def to_json(self) -> dict[str, Any]:
-        return {"a": self.a, "b": self.b, "psnr_db": self.psnr.to_json(), "resolved": self.psnr.resolved}
-
-    def words(self) -> str:
-        e = self.psnr
-        return f"{self.a} {'-' if e.mean < 0 else '+'}{abs(e.mean):.2f} dB vs {self.b} [{e.lo:+.2f}, {e.hi:+.2f}]"
-
-
 def row_json(row: Row, floor: Row, rs: Resampler) -> dict[str, Any]:
     """Means and intervals of every metric, the PSNR gain over the blurred input, and the per-seed means."""
     out: dict[str, Any] = {"setting": row.setting}
@@ -89,10 +73,7 @@ def differences(t3: Sequence[Row], t4: Sequence[Row], rs: Resampler) -> list[Dif
     few, all_measured, synth4 = t4[0], t4[1], [r for r in t4 if r.simulator]
 
     def diff(a: Row, b: Row) -> Difference:
-        e = rs.difference(a.values["psnr"], b.values["psnr"])
-        if e.mean < 0:
-            return Difference(b.setting, a.setting, Estimate(-e.mean, -e.hi, -e.lo))
-        return Difference(a.setting, b.setting, e)
+        return rs.compare(a.setting, a.values["psnr"], b.setting, b.values["psnr"])
 
     out = [diff(r, floor) for r in t3[1:]]
     out += [diff(a, b) for a, b in combinations(synth3, 2)]
@@ -105,18 +86,8 @@ def differences(t3: Sequence[Row], t4: Sequence[Row], rs: Resampler) -> list[Dif
     return out
 
 
-def verdict(diffs: Sequence[Difference]) -> str:
-    """The differences in words: which are resolved (95 % interval excludes 0) and which are not."""
-    done = [d.words() for d in diffs if d.psnr.resolved]
-    open_ = [d.words() for d in diffs if not d.psnr.resolved]
-    return (f"**Resolved** ({len(done)} of {len(diffs)}; the 95 % interval of the PSNR difference excludes 0): "
-            + ("; ".join(done) if done else "none") + ".\n\n"
-            + f"**Not resolved** ({len(open_)}): " + ("; ".join(open_) if open_ else "none") + ".\n")
-
-
 def _ci(value: float, ci: Sequence[float], digits: int, signed: bool = False) -> str:
-    f = f"{{:{'+' if signed else ''}.{digits}f}}"
-    return f"{f.format(value)} [{f.format(ci[0])}, {f.format(ci[1])}]"
+    return Estimate(value, ci[0], ci[1]).text(digits, signed)
 
 
 def markdown(title: str, rows: Sequence[dict[str, Any]], note: str) -> str:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -50,8 +51,43 @@ class Estimate:
         """The interval excludes 0 (meaningful for a difference)."""
         return self.lo > 0.0 or self.hi < 0.0
 
-    def to_json(self) -> dict[str, float]:
+    def to_json(self) -> dict[str, Any]:
         return {"mean": self.mean, "ci95": [self.lo, self.hi]}
+
+    def text(self, digits: int = 2, signed: bool = False) -> str:
+        """``mean [lo, hi]``."""
+        f = f"{{:{'+' if signed else ''}.{digits}f}}"
+        return f"{f.format(self.mean)} [{f.format(self.lo)}, {f.format(self.hi)}]"
+
+
+@dataclass(frozen=True)
+class Difference:
+    """``a - b`` (e.g. PSNR in dB) over the same pairs and seeds, oriented so that ``a`` has the higher mean."""
+
+    a: str
+    b: str
+    estimate: Estimate
+
+    @classmethod
+    def oriented(cls, a: str, b: str, e: Estimate) -> Difference:
+        """``a - b``, or ``b - a`` with the interval mirrored when ``a``'s mean is the lower."""
+        return cls(b, a, Estimate(-e.mean, -e.hi, -e.lo)) if e.mean < 0 else cls(a, b, e)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"a": self.a, "b": self.b, "difference": self.estimate.to_json(), "resolved": self.estimate.resolved}
+
+    def words(self, unit: str = "dB") -> str:
+        e = self.estimate
+        return f"{self.a} +{e.mean:.2f} {unit} over {self.b} [{e.lo:+.2f}, {e.hi:+.2f}]"
+
+
+def verdict(diffs: Sequence[Difference], what: str = "PSNR difference", unit: str = "dB") -> str:
+    """The differences in words: which are resolved (the 95 % interval excludes 0) and which are not."""
+    done = [d.words(unit) for d in diffs if d.estimate.resolved]
+    open_ = [d.words(unit) for d in diffs if not d.estimate.resolved]
+    return (f"**Resolved** ({len(done)} of {len(diffs)}; the 95 % interval of the {what} excludes 0): "
+            + ("; ".join(done) if done else "none") + ".\n\n"
+            + f"**Not resolved** ({len(open_)}): " + ("; ".join(open_) if open_ else "none") + ".\n")
 
 
 class Resampler:
@@ -115,3 +151,7 @@ class Resampler:
     def difference(self, a: ArrayLike, b: ArrayLike) -> Estimate:
         """Mean and 95 % interval of ``a - b`` (paired by seed and pair; either may be seed-independent)."""
         return self.estimate(self._grid(a) - self._grid(b))
+
+    def compare(self, a: str, va: ArrayLike, b: str, vb: ArrayLike) -> Difference:
+        """The :class:`Difference` of the settings named ``a`` and ``b`` with scores ``va`` and ``vb``."""
+        return Difference.oriented(a, b, self.difference(va, vb))

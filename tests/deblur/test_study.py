@@ -61,8 +61,8 @@ def test_study_with_neural_dp_two_seeds_and_two_test_sets(tmp_path: Path) -> Non
         assert gain["mean"] == pytest.approx(disk["psnr"] - floor["psnr"], abs=1e-9)
         diffs = json.loads((out / test / "differences.json").read_text())
         for d in diffs["differences"]:
-            lo, hi = d["psnr_db"]["ci95"]
-            assert d["psnr_db"]["mean"] >= 0 and d["resolved"] == (lo > 0 or hi < 0)
+            lo, hi = d["difference"]["ci95"]
+            assert d["difference"]["mean"] >= 0 and d["resolved"] == (lo > 0 or hi < 0)
         pairs = {(d["a"], d["b"]) for d in diffs["differences"]}
         assert {("synthetic: disk", "synthetic: neural"), ("synthetic: neural", "synthetic: disk")} & pairs
         assert (out / test / "figure.png").stat().st_size > 1000

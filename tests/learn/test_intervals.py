@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dp5k_common.errors import BadInputError
-from dp5k_learn.intervals import Resampler
+from dp5k_learn.intervals import Resampler, verdict
 
 
 def width(e) -> float:  # noqa: ANN001
@@ -67,3 +67,15 @@ def test_non_finite_scores_are_left_out() -> None:
     assert e.mean == pytest.approx(2.0) and 1.0 <= e.lo <= e.hi <= 3.0
     with pytest.raises(BadInputError, match="no finite"):
         Resampler(["a"], 1).estimate([np.nan])
+
+
+def test_comparisons_name_the_better_setting_first_and_say_whether_resolved() -> None:
+    rs = Resampler([str(i) for i in range(10)], 1)
+    base = np.linspace(20.0, 30.0, 10)
+    worse = rs.compare("worse", base - 1.0, "better", base)
+    assert (worse.a, worse.b) == ("better", "worse") and worse.estimate.mean == pytest.approx(1.0)
+    assert worse.estimate.lo == pytest.approx(1.0) and worse.estimate.resolved
+    tie = rs.compare("x", base + np.tile([0.1, -0.1], 5), "y", base)
+    text = verdict([worse, tie])
+    assert "**Resolved** (1 of 2" in text and "better +1.00 dB over worse" in text
+    assert "**Not resolved** (1)" in text and "over y" in text.split("Not resolved")[1]
