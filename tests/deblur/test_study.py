@@ -16,7 +16,7 @@ from dp5k_demo.rgbd import write_rgbd_frames
 from dp5k_studio import make_dataset
 from dp5k_testing.tiny_dataset import make_tiny_dataset
 
-TINY = ["--set", "data.crop_px=32", "--set", "data.samples_per_epoch=16", "--set", "optim.epochs=2",
+TINY = ["--set", "data.crop_px=32", "--set", "data.samples_per_epoch=16", "--set", "optim.epochs=1",
         "--set", "model.base_channels=4", "--set", "model.levels=2", "--few-real-pairs", "2", "--finetune-epochs", "1",
         "--neural-channels", "4", "--neural-levels", "2", "--seeds", "0,1"]
 
