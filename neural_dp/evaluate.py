@@ -33,6 +33,7 @@ from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
 from dp5k_learn.batch import DPBatch
 from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
+from dp5k_learn.distributed import resolve_device
 from dp5k_learn.metrics import view_metrics
 
 from .simulators.catalog import SimulatorSpec, default_simulators
@@ -144,7 +145,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
             peers, the base model and, with ``checkpoint``, the Neural DP Simulator. Each is a column named by
             the simulator (its whole spec where two share a name).
         checkpoint: the Neural DP checkpoint (``best.pt`` written by ``dp5k train``) of a bare ``neural``.
-        device: torch device for the simulators.
+        device: torch device for the simulators, or ``auto`` (the first CUDA GPU, else the CPU).
         max_pairs: evaluate at most this many pairs (0 = all).
         figures: how many pairs get a comparison picture.
         fit_pairs / fit_crop_px: training crops given to simulators with free parameters.
@@ -167,7 +168,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     for spec in specs:
         spec.check_files()
     names = column_names(specs)
-    dev = torch.device(device)
+    dev = resolve_device(device)
     sims: dict[str, DPSimulator] = {}
     fitted: dict[str, dict[str, float]] = {}
     fit_batches: list[DPBatch] | None = None
