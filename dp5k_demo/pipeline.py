@@ -36,7 +36,13 @@ class DemoScale:
         f_numbers: f-numbers of the studio datasets.
         epochs: training epochs.
         crop: training crop in px.
-        diag_scenes: scenes of the hidden-effect dataset.
+        base_channels: channels of the U-Net's first level (the paper's 64 only at the paper scale: the demo
+            trains on the CPU for a few epochs, where a narrower network learns as much and every stage that runs
+            it, train, evaluate, diagnose's fine-tuning and synthesize, costs a fraction).
+        eval_fit_pairs: training pairs the base model is fitted on before ``evaluate`` compares it.
+        diag_scenes: scenes of the hidden-effect dataset (each gives one pair per camera and f-number).
+        diag_fit_pairs: training pairs ``diagnose`` fits on (``--fit-pairs``; the other train pairs join the
+            detection set); None = diagnose's own default (``auto``).
         rgbd_frames: RGBD frames given to ``synthesize``.
         eval_pairs: pairs per dataset that ``evaluate`` compares the simulators on.
         neural_steps: fine-tuning steps of the Neural DP extension in ``diagnose --simulator neural:CKPT``
@@ -51,16 +57,19 @@ class DemoScale:
     f_numbers: str
     epochs: int
     crop: int
+    base_channels: int
+    eval_fit_pairs: int
     diag_scenes: int
+    diag_fit_pairs: int | None
     rgbd_frames: int
     eval_pairs: int
     neural_steps: int
 
 
 SCALES: dict[str, DemoScale] = {
-    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2, 4, 2),
-    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4, 8, 20),
-    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8, 0, 150),
+    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 16, 2, 4, 4, 2, 4, 2),
+    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 32, 4, 6, 6, 4, 8, 20),
+    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 64, 8, 30, None, 8, 0, 150),
 }
 
 # Realistic effects for the training data (the world is not the ideal model): Canon-like weak disparity,
@@ -94,6 +103,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
     run_dir = out / "neural_dp"
     rgbd = out / "rgbd-frames"
     effect = hidden_effect(seed)
+    diag_fit = [] if scale.diag_fit_pairs is None else ["--fit-pairs", str(scale.diag_fit_pairs)]
 
     def capture(ctx: dict[str, Any]) -> dict[str, Any]:
         for scene in (*scale.scenes, "wall"):
@@ -141,7 +151,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
     def train(ctx: dict[str, Any]) -> dict[str, Any]:
         run_cli(["train", str(train_ds), "--out", str(run_dir), "--epochs", str(scale.epochs),
-                 "--crop-size", str(scale.crop), "--device", "cpu", "--seed", str(seed)])
+                 "--crop-size", str(scale.crop), "--set", f"model.base_channels={scale.base_channels}",
+                 "--device", "cpu", "--seed", str(seed)])
         return {"run": str(run_dir), "checkpoint": str(run_dir / "best.pt")}
 
     def evaluate(ctx: dict[str, Any]) -> dict[str, Any]:
@@ -152,7 +163,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
             eout = out / f"evaluate-{name}"
             split = "test" if name == "studio" else _nonempty_split(ds)
             run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), *simulators,
-                     "--max-pairs", str(scale.eval_pairs), "--figures", "1", "--device", "cpu"])
+                     "--max-pairs", str(scale.eval_pairs), "--fit-pairs", str(scale.eval_fit_pairs), "--figures", "1",
+                     "--device", "cpu"])
             results[name] = {"out": str(eout), "split": split}
         return results
 
@@ -164,12 +176,12 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
     def diagnose_base(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-base"
-        run_cli(["diagnose", str(diag_ds), "--simulator", "base", "--out", str(dout)])
+        run_cli(["diagnose", str(diag_ds), "--simulator", "base", "--out", str(dout), *diag_fit])
         return {"out": str(dout)}
 
     def diagnose_neural(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-neural"
-        run_cli(["diagnose", str(diag_ds), "--simulator", f"neural:{run_dir / 'best.pt'}", "--out", str(dout),
+        run_cli(["diagnose", str(diag_ds), "--simulator", f"neural:{run_dir / 'best.pt'}", "--out", str(dout), *diag_fit,
                  "--neural-steps", str(scale.neural_steps), "--device", "cpu"])
         return {"out": str(dout)}
 

@@ -85,14 +85,18 @@ def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str
 @device_option()
 @click.option("--max-pairs", type=int, default=0, help="Evaluate at most this many pairs (0 = all).")
 @click.option("--figures", type=int, default=2, show_default=True, help="Pairs that get a comparison picture.")
+@click.option("--fit-pairs", type=click.IntRange(min=1), default=8, show_default=True,
+              help="Training pairs (one crop of at most 256 px each) that simulators with free parameters (base) are "
+                   "fitted on before they are compared.")
 def evaluate_command(dataset: Path, split: str, out: Path | None, simulators: tuple[str, ...], legacy_names: str | None,
-                     checkpoint: Path | None, device: str, max_pairs: int, figures: int) -> None:
+                     checkpoint: Path | None, device: str, max_pairs: int, figures: int, fit_pairs: int) -> None:
     """Table 2: masked MAE / PSNR / SSIM of every simulator on the same pairs of DATASET."""
     from .evaluate import evaluate
 
     specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
     out = out or dataset.resolve().parent / f"{dataset.resolve().name}-eval-{split}"
-    result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures)
+    result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures,
+                      fit_pairs=fit_pairs)
     click.echo(result.table_md.rstrip())
     click.echo(f"-> {out / 'metrics.json'}, {out / 'table.md'}, {out / 'figures'}")
 
