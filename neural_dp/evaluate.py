@@ -223,7 +223,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         "specs": [str(spec) for spec in specs],
         "checkpoint": next((str(spec.checkpoint) for spec in specs if spec.is_neural), None), "device": str(dev),
         "metric_definitions": "masked MAE/PSNR/SSIM (dp5k_learn.metrics), mean of left and right view, mean over pairs",
-        "fitted_parameters": fitted, "means": means, "per_pair": per_pair,
+        "fitted_parameters": fitted, "fit_pairs": len(fit_batches or []), "means": means, "per_pair": per_pair,
     }
     write_json_atomic(out / "metrics.json", report)
     with atomic_path(out / "table.md") as tmp:

@@ -204,10 +204,23 @@ def test_evaluate_without_simulators_compares_every_available_one(tmp_path: Path
     make_tiny_dataset(ds, scenes=3, W=48, H=32)
     code, out = run("evaluate", str(ds), "--out", str(tmp_path / "e"), "--figures", "0")
     assert code == 0, out
-    assert json.loads((tmp_path / "e" / "metrics.json").read_text())["simulators"] == ["disk", "butterworth", "raytrace", "base"]
+    metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    assert metrics["simulators"] == ["disk", "butterworth", "raytrace", "base"]
+    assert metrics["fit_pairs"] == min(8, len(DatasetReader(ds).ids("train"))) and "base" in metrics["fitted_parameters"]
     assert "no Neural DP checkpoint" in out
     code, out = run("evaluate", str(ds), "--out", str(tmp_path / "n"), "--simulator", "neural")  # named: required
     assert code == 3 and "dp5k train" in out and len(lines(out)) == 1
+
+
+def test_evaluate_fit_pairs_sets_how_many_pairs_the_base_model_is_fitted_on(tmp_path: Path) -> None:
+    ds = tmp_path / "ds"
+    make_tiny_dataset(ds, scenes=4, W=48, H=32)  # scenes 0 and 3 in train
+    assert len(DatasetReader(ds).ids("train")) == 2
+    code, out = run("evaluate", str(ds), "--out", str(tmp_path / "e"), "--simulator", "base", "--fit-pairs", "1",
+                    "--figures", "0")
+    assert code == 0, out
+    metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    assert metrics["fit_pairs"] == 1 and "base" in metrics["fitted_parameters"]
 
 
 def test_verify_given_a_dataset_runs_check(tmp_path: Path) -> None:
