@@ -16,6 +16,7 @@ from typing import Any
 import click
 
 from dp5k_common import __version__
+from dp5k_common.deprecation import collect_deprecations
 from dp5k_common.errors import DP5KError
 from dp5k_common.progress import set_progress_enabled
 
@@ -25,7 +26,7 @@ from dp5k_common.progress import set_progress_enabled
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "capture": ("dp5k_capture.cli", "capture_command", "Capture one scene on the rig (or --sim): DP raws, ChArUco, Gray code."),
     "devices": ("dp5k_capture.cli", "devices_command", "Canon bodies and projector ports: serial, access, battery, card, holder."),
-    "verify": ("dp5k_capture.cli", "verify_command", "Verify raw sessions: sizes, SHA-256, counts, Dual Pixel frames."),
+    "verify": ("dp5k_capture.cli", "verify_command", "Verify raw sessions (sizes, SHA-256, counts, DP); datasets: dp5k check."),
     "process": ("dp5k_process.cli", "process_command", "Process raw sessions into the dataset format v1."),
     "validate-depth": ("dp5k_process.cli", "validate_depth_command", "Depth accuracy against a ChArUco wall (Eq. 4)."),
     "sl-depth": ("dp5k_process.sl_depth", "sl_depth_command", "Structured-light depth of camera 0 from any stereo rig's Gray code."),
@@ -59,17 +60,19 @@ class _Group(click.Group):
             formatter.write_dl([(name, COMMANDS[name][2]) for name in self.list_commands(ctx)])
 
     def invoke(self, ctx: click.Context) -> Any:
-        try:
-            return super().invoke(ctx)
-        except DP5KError as exc:
-            _report(ctx, f"dp5k: error: {exc.one_line()}")
-            ctx.exit(exc.exit_code)
-        except KeyboardInterrupt:
-            _report(ctx, "dp5k: interrupted; finished work was kept, run the command again to resume")
-            ctx.exit(130)
-        except MemoryError:
-            _report(ctx, "dp5k: error: out of memory; try a smaller size or fewer workers")
-            ctx.exit(1)
+        # deprecated spellings print their line after the command's output, or inside its one error line
+        with collect_deprecations() as notes:
+            try:
+                return super().invoke(ctx)
+            except DP5KError as exc:
+                _report(ctx, f"dp5k: error: {exc.one_line()}{notes.take_suffix()}")
+                ctx.exit(exc.exit_code)
+            except KeyboardInterrupt:
+                _report(ctx, f"dp5k: interrupted; finished work was kept, run the command again to resume{notes.take_suffix()}")
+                ctx.exit(130)
+            except MemoryError:
+                _report(ctx, f"dp5k: error: out of memory; try a smaller size or fewer workers{notes.take_suffix()}")
+                ctx.exit(1)
 
 
 def _report(ctx: click.Context, line: str) -> None:

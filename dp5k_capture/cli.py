@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from dp5k_common.cli_conventions import out_option
 from dp5k_common.errors import BadInputError, DatasetFormatError, DP5KError
 
 log = logging.getLogger(__name__)
@@ -21,8 +22,9 @@ CTRL_C_AGAIN_S = 0.05  # a Ctrl-C swallowed by a finalizer is delivered again th
 
 @click.command("capture")
 @click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
-@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("raw"), show_default=True,
-              help="Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is writable); an unwritable OUT is refused before any device is touched.")
+@out_option("Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is "
+            "writable); an unwritable OUT is refused before any device is touched. An interrupted scene resumes; a "
+            "captured file is never overwritten.", default=Path("raw"))
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
@@ -184,13 +186,25 @@ def devices_command(rig_path: Path | None, sim: bool, sim_faults: str, udev_rule
 @click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--no-dp-check", is_flag=True, help="Skip opening every raw with rawpy (sizes and SHA-256 only).")
 def verify_command(scenes: tuple[Path, ...], no_dp_check: bool) -> None:
-    """Verify raw sessions: every file's size and SHA-256, the per-kind counts, Dual Pixel frames."""
+    """Verify raw sessions: every file's size and SHA-256, the per-kind counts, Dual Pixel frames.
+
+    A processed dataset (format v1, a folder with dataset.json) is checked by dp5k check; given one, verify says
+    so and runs that check.
+    """
+    from dp5k_common.check import echo_check
+
     from .rawsession import verify_session
 
     bad = 0
     for scene in scenes:
         if not (scene / "manifest.json").is_file():
-            raise BadInputError("no manifest.json: not a raw capture session", where=scene)
+            if (scene / "dataset.json").is_file():
+                click.echo(f"{scene}: a processed dataset (format v1), not a raw session: running dp5k check {scene}",
+                           err=True)
+                echo_check(scene)
+                continue
+            raise BadInputError("no manifest.json: not a raw capture session (a processed dataset is checked with "
+                                "dp5k check DATASET)", where=scene)
         report = verify_session(scene, check_dual_pixel=not no_dp_check)
         counts = ", ".join(f"{k} {v}" for k, v in report.counts.items())
         status = "OK" if not report.problems else f"{len(report.problems)} problems"

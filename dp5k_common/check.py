@@ -75,6 +75,15 @@ def check_command(dataset: Path) -> None:
     (dataset.json import_failures) are listed with a warning: the dataset is valid but incomplete
     (dp5k import --resume retries them).
     """
+    echo_check(dataset)
+
+
+def echo_check(dataset: Path) -> None:
+    """Check ``dataset`` and print the summary ``dp5k check`` prints (``dp5k verify`` given a dataset does too).
+
+    Raises:
+        DatasetFormatError: the first problem (:func:`check_dataset`).
+    """
     summary = check_dataset(dataset)
     pairs = summary["pairs"]
     click.echo(f"{dataset}: dp5k dataset v1, {sum(pairs.values())} pairs")

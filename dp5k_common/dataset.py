@@ -538,6 +538,35 @@ def write_index(
     return root / "dataset.json"
 
 
+def copy_pairs(src: str | os.PathLike[str], out: str | os.PathLike[str], splits: Mapping[str, Sequence[str]],
+               **extra: Any) -> Path:
+    """A new dataset at ``out`` holding copies of ``src``'s pairs under new ``splits`` (train, val and test lists of
+    ``src``'s pair ids; e.g. a few train pairs, or a held-out part of a train split). Each pair folder is copied
+    under a temporary name and renamed, then ``dataset.json`` is written, so an interrupted copy resumes and
+    ``src`` is never touched. ``extra`` goes into ``dataset.json`` (e.g. ``source``).
+
+    Returns:
+        ``out``.
+
+    Raises:
+        DatasetFormatError: ``src`` is not a dataset, or ``splits`` names a pair it lacks or lacks a split.
+    """
+    src, out = Path(src), Path(out)
+    if not (src / "dataset.json").is_file():
+        raise DatasetFormatError("missing dataset.json (not a dp5k dataset?)", where=src / "dataset.json")
+    for pid in (p for ids in splits.values() for p in ids):
+        if not (src / "pairs" / pid).is_dir():
+            raise DatasetFormatError(f"no pair {pid!r} to copy", where=src / "pairs")
+        dst = out / "pairs" / pid
+        if not dst.is_dir():
+            tmp = out / "pairs" / f".{pid}.partial"
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(src / "pairs" / pid, tmp)
+            tmp.rename(dst)
+    write_index(out, splits, **extra)
+    return out
+
+
 def split_scenes(
     scene_ids: Sequence[str], fractions: tuple[float, float, float] = (3850 / 5130, 640 / 5130, 640 / 5130), seed: int = 0
 ) -> dict[str, list[str]]:

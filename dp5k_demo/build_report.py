@@ -145,7 +145,8 @@ def build_report(out: Path, scale: DemoScale, records: dict[str, dict[str, Any]]
     # 4. simulators
     s = rep.section("4. DP simulators compared (the paper's Table 2)")
     s.text(f"Training data: studio scenes with realistic effects ({', '.join(records['studio_train']['result']['effects'])}); "
-           f"{scale.epochs} training epochs on the CPU (a short run; the paper trains 100 epochs on 3850 pairs).")
+           f"{scale.epochs} training epochs on the CPU of a U-Net {scale.base_channels} channels wide at its first level "
+           "(a short run; the paper trains a 64-channel one for 100 epochs on 3850 pairs).")
     for name in ("studio", "processed"):
         ev = out / f"evaluate-{name}"
         metrics = read_json(ev / "metrics.json")

@@ -1,4 +1,5 @@
-"""The demo's stages, each run through the same click command a user would type.
+"""The demo's stages, each run through the same click command a user would type (networks on the CPU, so that
+its numbers are the same on every machine).
 
 Stages (in order): simulated capture of a few scenes and a wall, ``process``, ``validate-depth``, a studio
 training set with realistic effects, a short ``train``, ``evaluate`` of every simulator, ``diagnose`` of the
@@ -35,7 +36,14 @@ class DemoScale:
         f_numbers: f-numbers of the studio datasets.
         epochs: training epochs.
         crop: training crop in px.
-        diag_scenes: scenes of the hidden-effect dataset.
+        base_channels: channels of the U-Net's first level (the paper's 64 only at the paper scale: the demo
+            trains on the CPU for a few epochs, where a narrower network learns as much (at the small scale 16
+            channels matched the 64-channel network's Table 2 to the third digit, 2026-11-27) and every stage
+            that runs it, train, evaluate, diagnose's fine-tuning and synthesize, costs a fraction).
+        eval_fit_pairs: training pairs the base model is fitted on before ``evaluate`` compares it.
+        diag_scenes: scenes of the hidden-effect dataset (each gives one pair per camera and f-number).
+        diag_fit_pairs: training pairs ``diagnose`` fits on (``--fit-pairs``; the other train pairs join the
+            detection set); None = diagnose's own default (``auto``).
         rgbd_frames: RGBD frames given to ``synthesize``.
         eval_pairs: pairs per dataset that ``evaluate`` compares the simulators on.
         neural_steps: fine-tuning steps of the Neural DP extension in ``diagnose --simulator neural:CKPT``
@@ -50,16 +58,19 @@ class DemoScale:
     f_numbers: str
     epochs: int
     crop: int
+    base_channels: int
+    eval_fit_pairs: int
     diag_scenes: int
+    diag_fit_pairs: int | None
     rgbd_frames: int
     eval_pairs: int
     neural_steps: int
 
 
 SCALES: dict[str, DemoScale] = {
-    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 6, 2, 4, 2),
-    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 10, 4, 8, 20),
-    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 30, 8, 0, 150),
+    "small": DemoScale("small", "20", ("demo01",), 6, (96, 64), "1.8,4", 2, 48, 16, 2, 4, 4, 2, 4, 2),
+    "medium": DemoScale("medium", "10", ("demo01", "boxes"), 12, (192, 128), "1.8,2.8,5.6", 6, 96, 32, 4, 6, 6, 4, 8, 20),
+    "paper": DemoScale("paper", "paper", ("demo01", "boxes", "near"), 40, (576, 384), "1.8,2,2.8,4,5.6", 20, 256, 64, 8, 30, None, 8, 0, 150),
 }
 
 # Realistic effects for the training data (the world is not the ideal model): Canon-like weak disparity,
@@ -93,6 +104,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
     run_dir = out / "neural_dp"
     rgbd = out / "rgbd-frames"
     effect = hidden_effect(seed)
+    diag_fit = [] if scale.diag_fit_pairs is None else ["--fit-pairs", str(scale.diag_fit_pairs)]
 
     def capture(ctx: dict[str, Any]) -> dict[str, Any]:
         for scene in (*scale.scenes, "wall"):
@@ -112,7 +124,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
                 link.symlink_to((raw / scene).resolve(), target_is_directory=True)
         skipped = []
         try:
-            run_cli(["process", str(staging), str(processed), "--seed", str(seed)])
+            run_cli(["process", str(staging), "--out", str(processed), "--seed", str(seed)])
         except PartialFailureError:
             # as `dp5k process` does for a user: failed scenes are reported and skipped, the rest go on
             for scene in scale.scenes:
@@ -130,7 +142,7 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         return {"out": str(vout)}
 
     def studio_train(ctx: dict[str, Any]) -> dict[str, Any]:
-        args = ["studio", "make-dataset", str(train_ds), "--scenes", str(scale.train_scenes),
+        args = ["studio", "make-dataset", "--out", str(train_ds), "--scenes", str(scale.train_scenes),
                 "--size", f"{scale.train_size[0]}x{scale.train_size[1]}", "--f-numbers", scale.f_numbers,
                 "--seed", str(seed + 1)]
         for e in TRAIN_EFFECTS:
@@ -140,7 +152,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
     def train(ctx: dict[str, Any]) -> dict[str, Any]:
         run_cli(["train", str(train_ds), "--out", str(run_dir), "--epochs", str(scale.epochs),
-                 "--crop", str(scale.crop), "--device", "cpu", "--seed", str(seed)])
+                 "--crop-size", str(scale.crop), "--set", f"model.base_channels={scale.base_channels}",
+                 "--device", "cpu", "--seed", str(seed)])
         return {"run": str(run_dir), "checkpoint": str(run_dir / "best.pt")}
 
     def evaluate(ctx: dict[str, Any]) -> dict[str, Any]:
@@ -151,25 +164,26 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
             eout = out / f"evaluate-{name}"
             split = "test" if name == "studio" else _nonempty_split(ds)
             run_cli(["evaluate", str(ds), "--split", split, "--out", str(eout), *simulators,
-                     "--max-pairs", str(scale.eval_pairs), "--figures", "1"])
+                     "--max-pairs", str(scale.eval_pairs), "--fit-pairs", str(scale.eval_fit_pairs), "--figures", "1",
+                     "--device", "cpu"])
             results[name] = {"out": str(eout), "split": split}
         return results
 
     def hidden(ctx: dict[str, Any]) -> dict[str, Any]:
-        run_cli(["studio", "make-dataset", str(diag_ds), "--scenes", str(scale.diag_scenes),
+        run_cli(["studio", "make-dataset", "--out", str(diag_ds), "--scenes", str(scale.diag_scenes),
                  "--size", f"{scale.train_size[0]}x{scale.train_size[1]}", "--f-numbers", scale.f_numbers,
                  "--seed", str(seed + 2), "--effect", f"{effect}=1"])
         return {"dataset": str(diag_ds)}
 
     def diagnose_base(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-base"
-        run_cli(["diagnose", str(diag_ds), "--simulator", "base", "--out", str(dout)])
+        run_cli(["diagnose", str(diag_ds), "--simulator", "base", "--out", str(dout), *diag_fit])
         return {"out": str(dout)}
 
     def diagnose_neural(ctx: dict[str, Any]) -> dict[str, Any]:
         dout = out / "diagnose-neural"
-        run_cli(["diagnose", str(diag_ds), "--simulator", f"neural:{run_dir / 'best.pt'}", "--out", str(dout),
-                 "--neural-steps", str(scale.neural_steps)])
+        run_cli(["diagnose", str(diag_ds), "--simulator", f"neural:{run_dir / 'best.pt'}", "--out", str(dout), *diag_fit,
+                 "--neural-steps", str(scale.neural_steps), "--device", "cpu"])
         return {"out": str(dout)}
 
     def synthesize(ctx: dict[str, Any]) -> dict[str, Any]:
@@ -177,8 +191,8 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
 
         write_rgbd_frames(diag_ds, rgbd, scale.rgbd_frames)
         sout = out / "synthesized"
-        run_cli(["synthesize", str(rgbd), str(sout), "--simulator", f"neural:{run_dir / 'best.pt'}",
-                 "--encoding", "linear", "--seed", str(seed)])
+        run_cli(["synthesize", str(rgbd), "--out", str(sout), "--simulator", f"neural:{run_dir / 'best.pt'}",
+                 "--encoding", "linear", "--seed", str(seed), "--device", "cpu"])
         return {"in": str(rgbd), "out": str(sout)}
 
     def report(ctx: dict[str, Any]) -> dict[str, Any]:
@@ -191,24 +205,24 @@ def build_stages(out: Path, scale: DemoScale, seed: int) -> list[Stage]:
         Stage("capture", "Simulated capture (PTP bodies + ESC/VP21 projector + virtual studio)", capture,
               "check `dp5k capture --sim --scene demo01` on its own; delete OUT/raw/<scene> only if its manifest is corrupt"),
         Stage("process", "Processing raw sessions into dataset format v1", process,
-              "run `dp5k -v process OUT/raw-scenes OUT/processed` to see which scene failed and why"),
+              "run `dp5k -v process OUT/raw-scenes --out OUT/processed` to see which scene failed and why"),
         Stage("validate_depth", "Depth validation against a ChArUco wall (Eq. 4)", validate,
-              "run `dp5k -v validate-depth OUT/raw/wall`"),
+              "run `dp5k -v validate-depth OUT/raw/wall --out OUT/validate-depth`"),
         Stage("studio_train", "Studio training data with realistic effects", studio_train,
               "run `dp5k -v studio make-dataset` with the same arguments"),
         Stage("train", "Short Neural DP Simulator training", train,
-              "run `dp5k -v train OUT/studio-train --out OUT/neural_dp`; delete OUT/neural_dp to start over"),
+              "run `dp5k -v train OUT/studio-train --out OUT/neural_dp`; add --overwrite to start over"),
         Stage("evaluate", "Evaluation of every simulator (Table 2)", evaluate,
               "run `dp5k -v evaluate OUT/studio-train --simulator neural:OUT/neural_dp/best.pt` (and the others)"),
         Stage("hidden_effect", "A dataset with a hidden physical effect", hidden,
-              "run `dp5k -v studio make-dataset OUT/studio-hidden` with the same arguments"),
+              "run `dp5k -v studio make-dataset --out OUT/studio-hidden` with the same arguments"),
         Stage("diagnose_base", "Diagnosis of the physical base model", diagnose_base,
               "run `dp5k -v diagnose OUT/studio-hidden --simulator base`"),
         Stage("diagnose_neural", "Diagnosis of the Neural DP Simulator", diagnose_neural,
               "run `dp5k -v diagnose OUT/studio-hidden --simulator neural:OUT/neural_dp/best.pt`"),
         Stage("synthesize", "Synthesis of DP pairs from RGBD frames", synthesize,
-              "run `dp5k -v synthesize OUT/rgbd-frames OUT/synthesized --simulator neural:OUT/neural_dp/best.pt`"),
-        Stage("report", "Report", report, "rerun `dp5k -v demo OUT` (finished stages are reused)", always=True),
+              "run `dp5k -v synthesize OUT/rgbd-frames --out OUT/synthesized --simulator neural:OUT/neural_dp/best.pt`"),
+        Stage("report", "Report", report, "rerun `dp5k -v demo --out OUT` (finished stages are reused)", always=True),
     ]
 
 

@@ -1,6 +1,6 @@
 """A tiny stage runner: each stage runs once, records its outputs and timing, and is reused on the next run.
 
-A stage's record lives in ``OUT/.stages/<name>.json`` and is written (atomically) only when the stage
+A stage's record lives in ``OUT/.stages/<name>.json`` (:data:`STATE_DIR`) and is written (atomically) only when the stage
 succeeds, so an interrupted or failed run resumes at the first unfinished stage. A failure becomes a
 :class:`~dp5k_common.errors.StageError` that names the stage and the fix.
 """
@@ -8,6 +8,7 @@ succeeds, so an interrupted or failed run resumes at the first unfinished stage.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,6 +19,8 @@ from dp5k_common.errors import DP5KError, StageError
 from dp5k_common.io import read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
+
+STATE_DIR = ".stages"  # OUT/.stages/<stage>.json: the records of finished stages
 
 
 @dataclass(frozen=True)
@@ -42,7 +45,8 @@ class Stage:
 def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bool = False) -> dict[str, dict[str, Any]]:
     """Run ``stages`` in order, reusing finished ones; return ``{name: record}``.
 
-    Each record is ``{"title", "seconds", "reused", "result"}``; ``ctx["results"][name]`` gives later stages
+    Each record is ``{"title", "seconds", "cpu_seconds", "reused", "result"}`` (``seconds`` wall time,
+    ``cpu_seconds`` user + system time of this process and its finished children: what load does not inflate); ``ctx["results"][name]`` gives later stages
     the earlier results.
 
     Raises:
@@ -51,7 +55,7 @@ def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bo
     records: dict[str, dict[str, Any]] = {}
     ctx.setdefault("results", {})
     ctx["records"] = records
-    state = out / ".stages"
+    state = out / STATE_DIR
     for i, stage in enumerate(stages, 1):
         path = state / f"{stage.name}.json"
         if path.is_file() and not force and not stage.always:
@@ -60,7 +64,7 @@ def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bo
             log.info("[%d/%d] %s: reused (finished in an earlier run)", i, len(stages), stage.title)
         else:
             log.info("[%d/%d] %s ...", i, len(stages), stage.title)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), cpu_seconds()
             try:
                 result = stage.run(ctx)
             except KeyboardInterrupt:
@@ -72,12 +76,20 @@ def run_stages(stages: list[Stage], ctx: dict[str, Any], out: Path, *, force: bo
                     f"{type(exc).__name__}: {exc}; fix: {stage.fix} (rerun with -v for the traceback)",
                     where=f"demo stage '{stage.name}'",
                 ) from exc
-            record = {"title": stage.title, "seconds": round(time.perf_counter() - t0, 2), "reused": False, "result": result}
+            record = {"title": stage.title, "seconds": round(time.perf_counter() - t0, 2),
+                      "cpu_seconds": round(cpu_seconds() - c0, 2), "reused": False, "result": result}
             write_json_atomic(path, record)
-            log.info("[%d/%d] %s: done in %.1f s", i, len(stages), stage.title, record["seconds"])
+            log.info("[%d/%d] %s: done in %.1f s (%.1f CPU s)", i, len(stages), stage.title, record["seconds"],
+                     record["cpu_seconds"])
         ctx["results"][stage.name] = record["result"]
         records[stage.name] = record
     return records
+
+
+def cpu_seconds() -> float:
+    """CPU time (s) of this process and its waited-for children, user + system (``os.times``)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 def peak_memory_note() -> str:
@@ -88,4 +100,4 @@ def peak_memory_note() -> str:
     return f"{kib / 1024 / 1024:.2f} GiB"
 
 
-__all__ = ["Stage", "run_stages", "peak_memory_note"]
+__all__ = ["STATE_DIR", "Stage", "run_stages", "cpu_seconds", "peak_memory_note"]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from dp5k_common.cli_conventions import device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 from dp5k_learn.config import FinetuneConfig
@@ -35,7 +36,7 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--simulator", default=None, metavar="SPEC", help=f"The simulator to diagnose (default: base): {SYNTAX}.")
 @click.option("--model", default=None, metavar="SPEC", help="Deprecated: --simulator SPEC.")
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None, help="Report folder (default: DATASET/diagnose-<simulator>).")
+@out_option("Report folder, replaced on each run.", required=False, default_text="DATASET/diagnose-<simulator>")
 @click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
               help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
@@ -43,14 +44,15 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
 @click.option("--neural-steps", default=FinetuneConfig.steps, show_default=True, type=click.IntRange(1),
               help="For neural:CKPT: fine-tuning steps of the structural extension and of its control (each).")
+@device_option("For neural:CKPT: the fine-tuning and its held-out scoring; the base model is fitted on the CPU.")
 @click.option("--sharp-f-number", "sharp_f_number", default="auto", show_default=True, metavar="auto|N",
               help="How to read `sharp` in pairs whose params.json has no sharp_f_number: auto = diagnose with f/22 and "
                    "with all-in-focus and keep the reading that predicts the detection pairs better; N = that f-number (0 = all-in-focus).")
 @click.option("--threads", default=1, show_default=True, type=click.IntRange(0),
               help="PyTorch threads while diagnosing (0 = PyTorch's default). Renders of ~100 px crops barely profit from more, and "
                    "on shared cores waiting threads slow them down many times (docs/diagnose.md).")
-def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out_dir: Path | None, seed: int, fit_pairs: str,
-                     nominal_noise: str, neural_steps: int, sharp_f_number: str, threads: int) -> None:
+def diagnose_command(dataset: Path, simulator: str | None, model: str | None, out: Path | None, seed: int, fit_pairs: str,
+                     nominal_noise: str, neural_steps: int, device: str, sharp_f_number: str, threads: int) -> None:
     """Fit the simulator on DATASET's train split, name the physical cause of its errors, extend it and measure the gain.
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
@@ -80,9 +82,9 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
     n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
-    out = out_dir or (dataset / f"diagnose-{spec.folder_name()}")
+    out = out or (dataset / f"diagnose-{spec.folder_name()}")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
-    neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps))
+    neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)
     res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
                                                           sharp_f_number=sharp_n, threads=threads))
     g = res["gain"]

@@ -8,6 +8,7 @@ from typing import Any
 
 import click
 
+from dp5k_common.cli_conventions import out_option, resume_option
 from dp5k_common.errors import BadInputError
 
 
@@ -38,7 +39,7 @@ def parse_crop(values: tuple[str, ...]) -> str | dict[str, Any] | None:
 @click.command("import")
 @click.argument("kind", type=click.Choice(["dp5k", "sdirt", "dpdd", "generic"]))
 @click.argument("src", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
+@out_option("The format-v1 dataset to write (refused if it holds one, unless --resume).", legacy_positional=True)
 @click.option("--tile", default=None,
               help="Cut each frame into WxH tiles (pairs); 'none' keeps whole frames. Default: 192x128 for sdirt, "
                    "whole frames for the others.")
@@ -59,13 +60,13 @@ def parse_crop(values: tuple[str, ...]) -> str | dict[str, Any] | None:
               help="dp5k, dpdd, generic: refuse a scene whose files disagree (a gray frame beside colour ones, 8 and "
                    "16-bit files in one pair, a --curve under which left + right does not match the combined frame) "
                    "instead of importing it with a warning.")
-@click.option("--resume", is_flag=True, default=False,
-              help="Continue an import at OUT that ended with failed scenes (exit 8): keep the imported scenes, retry "
-                   "the failed (and any new) ones.")
+@resume_option("--resume continues an import at OUT that ended with failed scenes (exit 8): keeps the imported "
+               "scenes, retries the failed (and any new) ones. --no-resume (the default) refuses an OUT that already "
+               "holds a dataset: an import never overwrites one.", default=False)
 def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int, crop: tuple[str, ...],
                    curve: str | None, focal_length_mm: float | None, f_number: float | None,
                    include_unsharp: bool | None, strict: bool, resume: bool) -> None:
-    """Import public or your own DP data from SRC into a format-v1 dataset at OUT.
+    """Import public or your own DP data from SRC into a format-v1 dataset at --out OUT.
 
     \b
     KIND (layouts in docs/data-format.md, "Importers"):

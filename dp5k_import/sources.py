@@ -49,7 +49,7 @@ def import_dataset(kind: str, src: str | os.PathLike[str], out: str | os.PathLik
     """Run adapter ``kind`` on ``src`` and write the format-v1 dataset to ``out`` (``tile="default"``: the
     importer's own default; ``resume``: continue a partial import, :func:`~.writer.write_imported`). Options the
     importer does not take are ignored when None (or False), else an error. OUT is checked before SRC is read."""
-    check_out_dir(Path(out), create=False, option="OUT")
+    check_out_dir(Path(out), create=False)
     if kind not in IMPORTERS:
         raise BadInputError(f"unknown import source {kind!r} (known: {', '.join(IMPORTERS)})")
     imp = IMPORTERS[kind]

@@ -98,7 +98,7 @@ def write_imported(out: str | os.PathLike[str], sources: Iterable[SceneSource | 
         PartialFailureError: some scenes failed (named with their file and problem); the others were written.
     """
     root = Path(out)
-    check_out_dir(root, create=False, option="OUT")
+    check_out_dir(root, create=False)
     prev = read_previous(root, resume)
     items = [s if isinstance(s, SceneSource) else SceneSource(s.scene, Path(s.scene), lambda c=s: iter([c]), s.split)
              for s in sources]

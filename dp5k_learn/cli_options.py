@@ -2,56 +2,87 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import click
 
+from dp5k_common.cli_conventions import device_option, overwrite_option, refuse_earlier_run, resume_option
+from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
 def training_options(config_module: str) -> Callable[[F], F]:
-    """A config file, the common overrides, ``--set`` and ``--no-resume``; ``config_module`` names where the
-    command's config is documented."""
+    """A config file, the common overrides, ``--set``, ``--resume/--no-resume`` and ``--overwrite``;
+    ``config_module`` names where the command's config is documented. The deprecated ``--crop PX`` arrives as
+    ``crop_size`` with its deprecation line (``--crop`` is a region of the input frames everywhere else)."""
     options = [
         click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
                      help=f"TOML (or JSON) config file; see {config_module}."),
         click.option("--epochs", type=int, default=None, help="Override optim.epochs."),
         click.option("--batch-size", type=int, default=None, help="Override data.batch_size (per process)."),
         click.option("--lr", type=float, default=None, help="Override optim.lr."),
-        click.option("--crop", type=int, default=None, help="Override data.crop_px."),
-        click.option("--device", default=None, help="cpu, cuda, cuda:N or auto (default: auto)."),
+        click.option("--crop-size", type=int, default=None, metavar="PX",
+                     help="Override data.crop_px: the side of the square training patches, px."),
+        click.option("--crop", "legacy_crop", type=int, default=None, metavar="PX", help="Deprecated: --crop-size PX."),
+        device_option(config_default=True),
         click.option("--seed", type=int, default=None, help="Override seed."),
         click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Any config override; repeatable."),
-        click.option("--no-resume", is_flag=True, help="Ignore an existing last.pt (refuses if it exists, to protect it)."),
+        resume_option("Continue from OUT's last.pt when there is one; --no-resume refuses an OUT that holds one."),
+        overwrite_option("Start afresh in OUT, deleting an earlier run's last.pt, best.pt and history.json."),
     ]
 
     def wrap(fn: F) -> F:
+        @functools.wraps(fn)
+        def run(*args: Any, crop_size: int | None = None, legacy_crop: int | None = None, **kwargs: Any) -> Any:
+            if legacy_crop is not None:
+                if crop_size is not None:
+                    raise BadInputError("give --crop-size, not the older --crop too", where="--crop")
+                warn_deprecated("--crop PX (a training patch size)", "--crop-size PX")
+                crop_size = legacy_crop
+            return fn(*args, crop_size=crop_size, **kwargs)
+
         for option in reversed(options):
-            fn = option(fn)
-        return fn
+            run = option(run)
+        return run  # type: ignore[return-value]
 
     return wrap
 
 
 def config_overrides(sets: tuple[str, ...], epochs: int | None, batch_size: int | None, lr: float | None,
-                     crop: int | None, device: str | None, seed: int | None) -> list[str]:
+                     crop_size: int | None, device: str | None, seed: int | None) -> list[str]:
     """``SECTION.KEY=VALUE`` overrides from ``--set`` and the named options that were given."""
     overrides = list(sets)
     for key, value in (("optim.epochs", epochs), ("data.batch_size", batch_size), ("optim.lr", lr),
-                       ("data.crop_px", crop), ("device", device), ("seed", seed)):
+                       ("data.crop_px", crop_size), ("device", device), ("seed", seed)):
         if value is not None:
             overrides.append(f"{key}={value}")
     return overrides
 
 
-def refuse_fresh_run_over(out: Path, no_resume: bool) -> None:
-    """``--no-resume`` never overwrites a previous run: refuse when ``out/last.pt`` exists."""
-    if no_resume and (out / "last.pt").exists():
-        raise BadInputError("--no-resume but a previous run's last.pt exists here; choose another --out", where=out)
+RUN_FILES = ("last.pt", "best.pt", "history.json")  # what a training run leaves in its folder (epochs.py)
+
+
+def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> bool:
+    """Apply ``--resume/--no-resume`` and ``--overwrite`` to a training run folder; return whether to resume.
+
+    ``--overwrite`` deletes the earlier run's files (:data:`RUN_FILES`) and starts afresh; ``--no-resume`` without it
+    never touches an earlier run: it refuses when ``out/last.pt`` exists.
+
+    Raises:
+        BadInputError: ``--no-resume`` (without ``--overwrite``) and an earlier run's last.pt is in ``out``.
+    """
+    if overwrite:
+        for name in RUN_FILES:
+            (out / name).unlink(missing_ok=True)
+        return False
+    if not resume:
+        refuse_earlier_run(out / "last.pt", "an earlier run's last.pt")
+    return resume
 
 
 def report_run(out: Path, result: Any) -> str:

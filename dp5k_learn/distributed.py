@@ -17,16 +17,32 @@ from __future__ import annotations
 import torch
 import torch.distributed as dist
 
+from dp5k_common.errors import BadInputError
 from dp5k_common.sharding import RankInfo, rank_info
 
 
-def resolve_device(requested: str, local_rank: int = 0) -> torch.device:
-    """``"auto"`` -> ``cuda:LOCAL_RANK`` when CUDA is present, else CPU; otherwise the named device."""
+def resolve_device(requested: str | torch.device, local_rank: int = 0) -> torch.device:
+    """``"auto"`` -> ``cuda:LOCAL_RANK`` when CUDA is present, else CPU; otherwise the named device.
+
+    Raises:
+        BadInputError: a name torch does not know, or a CUDA device this machine does not have (exit 3, before
+            any work, instead of torch's traceback half-way).
+    """
+    if isinstance(requested, torch.device):
+        return requested
     if requested == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    dev = torch.device(requested)
+    try:
+        dev = torch.device(requested)
+    except RuntimeError as exc:
+        raise BadInputError(f"unknown device {requested!r} (auto, cpu, cuda or cuda:N)", where="--device") from exc
     if dev.type == "cuda" and dev.index is None:
         dev = torch.device(f"cuda:{local_rank}")
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if dev.index is not None and dev.index >= count:
+            have = f"{count} CUDA device(s)" if count else f"no CUDA device (torch {torch.__version__})"
+            raise BadInputError(f"{requested} asked for, but torch sees {have}; use --device auto or cpu", where="--device")
     return dev
 
 

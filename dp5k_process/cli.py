@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from dp5k_common.cli_conventions import out_option, overwrite_option, refuse_earlier_run, resume_option
 from dp5k_common.errors import BadInputError
 
 from .filters import FilterConfig
@@ -27,7 +28,7 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
 
 @click.command("process")
 @click.argument("raw", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
+@out_option("The processed dataset (format v1) to write or continue.", legacy_positional=True)
 @click.option("--workers", "-j", type=int, default=1, show_default=True,
               help="Scenes processed in parallel (a process pool). Under torchrun --nproc_per_node N each rank "
                    "processes every N-th scene, with its own pool.")
@@ -41,16 +42,20 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
                    "resolve a scale's projector pixels gets one more (coarser) step per such scale, up to 1/8.")
 @click.option("--max-rms", type=float, default=1.0, show_default=True, help="Reject a calibration above this reprojection error (px).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene split.")
+@resume_option("Skip the scenes OUT already holds (their checksums verified) and process the rest; --no-resume "
+               "refuses an OUT that holds processed scenes.")
+@overwrite_option("Process every scene again, replacing what OUT holds (e.g. after changing --size); the raw "
+                  "sessions are only read.")
 def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_window: str, intrinsics: Path | None,
-                    fill_steps: int, max_rms: float, seed: int) -> None:
-    """Process raw capture sessions RAW/<scene>/ into the processed dataset format v1 in OUT.
+                    fill_steps: int, max_rms: float, seed: int, resume: bool, overwrite: bool) -> None:
+    """Process raw capture sessions RAW/<scene>/ into the processed dataset format v1 in --out OUT.
 
     Calibrates each focus setting from its three ChArUco pairs, decodes the Gray code at projector scales
     1 .. 1/8, triangulates and filters depth per DP camera, estimates the focus distance (Eq. 5), writes
     sharp/left/right/depth/CoC pairs and a report per scene. Finished scenes are skipped (checksums verified);
     a failing scene is reported and skipped, and the command exits with code 8 at the end.
 
-    Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW OUT`` the scenes are split over the N ranks
+    Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW --out OUT`` the scenes are split over the N ranks
     (RANK / WORLD_SIZE): each scene is written by one rank, each rank resumes its own share.
     """
     from calib.calibrate import CalibConfig
@@ -63,8 +68,10 @@ def process_command(raw: Path, out: Path, workers: int, size: str | None, focus_
                         intrinsics=None if intrinsics is None else str(intrinsics),
                         filt=dataclasses.replace(FilterConfig(), fill_steps=fill_steps),
                         calib=CalibConfig(max_rms_px=max_rms))
+    if not (resume or overwrite):
+        refuse_earlier_run(out / "reports", "an earlier run's processed scenes")
     try:
-        outcomes = process_sessions(raw, out, cfg, workers=workers, seed=seed)
+        outcomes = process_sessions(raw, out, cfg, workers=workers, seed=seed, overwrite=overwrite)
     finally:
         echo_warnings(raw, out)
     from dp5k_common.sharding import rank_info
@@ -103,8 +110,8 @@ def echo_warnings(raw: Path, out: Path) -> None:
 
 @click.command("validate-depth")
 @click.argument("capture", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), default=None,
-              help="Folder for the report and residual picture (default: CAPTURE/validate-depth).")
+@out_option("Folder for the report and residual picture, replaced on each run.", required=False,
+            default_text="CAPTURE/validate-depth")
 @click.option("--camera", type=click.Choice(["cam0", "cam1"]), default="cam0", show_default=True)
 @click.option("--intrinsics", type=click.Path(path_type=Path), default=None,
               help="FileStorage YAML with K0/dist0/K1/dist1 at raw resolution.")

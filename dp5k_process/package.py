@@ -10,7 +10,7 @@ A scene whose report says ``ok`` and whose pair files still match the recorded S
 run. A failing scene is reported with its reason, nothing of it enters ``pairs/`` and the others continue; the
 command then ends with :class:`PartialFailureError`.
 
-Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW OUT`` (``RANK`` / ``WORLD_SIZE`` in the environment,
+Under ``torchrun --nproc_per_node N -m dp5k_cli process RAW --out OUT`` (``RANK`` / ``WORLD_SIZE`` in the environment,
 ``dp5k_common.sharding``) each rank owns every N-th scene of the sorted list, whatever has been done before, so
 each scene is written by exactly one rank and a restarted rank resumes its own share. Every rank then rewrites
 ``dataset.json`` from all the scenes' reports on disk, under a lock (``OUT/.dataset.lock``): the last rank to
@@ -161,11 +161,12 @@ def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig, rank: RankInfo
 
 def process_sessions(raw_root: str | os.PathLike[str], out_root: str | os.PathLike[str],
                      cfg: ProcessConfig = ProcessConfig(), workers: int = 1, seed: int = 0,
-                     rank: RankInfo | None = None) -> list[SceneOutcome]:
+                     rank: RankInfo | None = None, overwrite: bool = False) -> list[SceneOutcome]:
     """Process this rank's share of the sessions under ``raw_root`` into ``out_root`` and write ``dataset.json``.
 
     Args:
         rank: this process's rank and the rank count; None = from torchrun's environment (alone: 0 of 1).
+        overwrite: process every scene again, even those ``out_root`` already holds (default: skip them).
 
     Returns:
         The outcomes of this rank's scenes, sorted by scene.
@@ -180,7 +181,7 @@ def process_sessions(raw_root: str | os.PathLike[str], out_root: str | os.PathLi
     outcomes: list[SceneOutcome] = []
     todo = []
     for sd in shard(sessions, info):  # the owner of a scene depends only on the sorted list and the rank count
-        done = scene_done(out, sd.name)
+        done = None if overwrite else scene_done(out, sd.name)
         if done is not None:
             outcomes.append(SceneOutcome(sd.name, "skipped", pairs=done))
         else:

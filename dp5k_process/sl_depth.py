@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from calib.calibrate import StereoCalibration
+from dp5k_common.cli_conventions import out_option, overwrite_option
 from dp5k_common.errors import BadInputError, LowQualityResultError
 from dp5k_common.io import finite_json, write_bytes_atomic, write_json_atomic, write_png16, write_tiff_float32
 from dp5k_common.outdir import check_out_dir
@@ -125,7 +126,7 @@ def sl_depth(images: Path, calibration: Path, out: Path, projector: tuple[int, i
             is implausible; after matching: a scene depth that cannot be right (T's units, another rig).
     """
     out, images = Path(out), Path(images)
-    check_out_dir(out, create=False, option="OUT")
+    check_out_dir(out, create=False)
     if (out / "report.json").exists() and not overwrite:
         raise BadInputError("output already holds a report (use --overwrite)", where=out / "report.json")
     if not 0 <= min_coverage <= 1:
@@ -136,7 +137,7 @@ def sl_depth(images: Path, calibration: Path, out: Path, projector: tuple[int, i
     cal_file = read_calibration(Path(calibration), units)
     fs = full_scale_of(files["cam0"][0], full_scale)
     gcfg: GrayCodeConfig = decoder_config(thresholds, projector, full_scale_of(files["cam0"][0], None))
-    check_out_dir(out, create=True, option="OUT")
+    check_out_dir(out, create=True)
 
     n_img = 2 * (n_patterns(*projector) + 2)
     with progress(total=n_img + 2, desc="sl-depth: decode", unit="step") as bar:
@@ -203,7 +204,7 @@ def _size(text: str) -> tuple[int, int]:
 @click.command("sl-depth")
 @click.argument("images", type=click.Path(path_type=Path))
 @click.argument("calibration", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
+@out_option("Folder for the depth maps, previews and reports.", legacy_positional=True)
 @click.option("--projector", required=True, help="Projector resolution WxH the Gray code was generated for.")
 @click.option("--units", type=click.Choice(["mm", "m"]), default="mm", show_default=True, help="Units of T in CALIBRATION.")
 @click.option("--full-scale", type=float, default=None,
@@ -218,10 +219,10 @@ def _size(text: str) -> tuple[int, int]:
                    "low quality, and the command exits 9.")
 @click.option("--no-refine", is_flag=True,
               help="Never refine the extrinsics: still checks them, and a calibration that does not fit exits 9.")
-@click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+@overwrite_option("Replace the outputs of an earlier run in OUT (refused without it).")
 def sl_depth_command(images: Path, calibration: Path, out: Path, projector: str, units: str, full_scale: float | None,
                      thresholds: str, fill_steps: int, min_coverage: float, no_refine: bool, overwrite: bool) -> None:
-    """Structured-light depth of camera 0 from IMAGES/cam0 and IMAGES/cam1 (any stereo rig) into OUT.
+    """Structured-light depth of camera 0 from IMAGES/cam0 and IMAGES/cam1 (any stereo rig) into --out OUT.
 
     \b
     IMAGES/cam0/, IMAGES/cam1/: each camera's captures, sorted naturally (im2 before im10), in OpenCV

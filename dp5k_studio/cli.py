@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from dp5k_common.cli_conventions import out_option, overwrite_option
 from dp5k_common.errors import BadInputError
 
 
@@ -34,7 +35,7 @@ def studio_group() -> None:
 
 
 @studio_group.command("make-dataset")
-@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@out_option("The format-v1 dataset to write (refused if it holds one, unless --overwrite).", legacy_positional=True)
 @click.option("--scenes", "n_scenes", type=int, default=3, show_default=True, help="Number of random scenes.")
 @click.option("--scene", "scene_names", multiple=True, help="Use these presets / seeds instead (repeatable).")
 @click.option("--effect", "effects", multiple=True, help="Plant an effect, NAME=STRENGTH (repeatable; 1.0 = moderate).")
@@ -42,7 +43,7 @@ def studio_group() -> None:
 @click.option("--f-numbers", default="1.8,2,2.8,4,5.6", show_default=True, help="Comma-separated DP f-numbers.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--no-noise", is_flag=True, help="Write noise-free DP views.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing dataset's pairs.")
+@overwrite_option("Replace the pairs of a dataset OUT already holds.")
 @click.option("--from", "source", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Re-render the DP views of this format-v1 dataset (any RGBD source) instead of studio scenes.")
 @click.option("--camera", "cameras", type=click.IntRange(0, 1), multiple=True,
@@ -62,7 +63,7 @@ def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...],
                          f_numbers: str, seed: int, no_noise: bool, overwrite: bool, source: Path | None,
                          cameras: tuple[int, ...], all_in_focus_sharp: bool, random_captures: int | None, coc_px: str,
                          noise_gain: str) -> None:
-    """Render a format-v1 dataset (scene x camera x f-number pairs, or x random captures) into OUT."""
+    """Render a format-v1 dataset (scene x camera x f-number pairs, or x random captures) into --out OUT."""
     from .dataset import RandomCaptures, make_dataset, make_dataset_from_rgbd
     from .effects import parse_effects
 
@@ -88,13 +89,13 @@ def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...],
 
 @studio_group.command("render")
 @click.argument("scene")
-@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@out_option("The PNG to write (replaced if it exists).", legacy_positional=True, file=True)
 @click.option("--scale", default="small", show_default=True, help="Rig scale: small, medium, paper or a factor.")
 @click.option("--camera", type=click.IntRange(0, 1), default=0, show_default=True)
 @click.option("--f-number", type=float, default=1.8, show_default=True)
 @click.option("--effect", "effects", multiple=True, help="NAME=STRENGTH (repeatable).")
 def render_command(scene: str, out: Path, scale: str, camera: int, f_number: float, effects: tuple[str, ...]) -> None:
-    """Preview SCENE (preset or seed): writes OUT as an sRGB PNG strip: sharp | left | right | depth."""
+    """Preview SCENE (preset or seed): writes --out OUT as an sRGB PNG strip: sharp | left | right | depth."""
     import numpy as np
 
     from dp5k_common.io import atomic_path

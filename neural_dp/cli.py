@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
 
+from dp5k_common.cli_conventions import device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
-from dp5k_learn.cli_options import config_overrides, refuse_fresh_run_over, report_run, training_options
+from dp5k_learn.cli_options import config_overrides, prepare_run_dir, report_run, training_options
 
 from .config import load_config
 from .simulators.catalog import PEERS, SYNTAX, SimulatorSpec, spec_texts
+
+log = logging.getLogger(__name__)
 
 
 def default_run_dir(dataset: Path) -> Path:
@@ -22,12 +26,11 @@ def default_run_dir(dataset: Path) -> Path:
 
 @click.command("train")
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None,
-              help="Run folder (checkpoints, config, history). Default: DATASET-neural_dp beside the dataset.")
+@out_option("Run folder (checkpoints, config, history).", required=False, default_text="DATASET-neural_dp beside the dataset")
 @training_options("neural_dp/config.py")
-def train_command(dataset: Path, out_dir: Path | None, config_file: Path | None, epochs: int | None,
-                  batch_size: int | None, lr: float | None, crop: int | None, device: str | None, seed: int | None,
-                  sets: tuple[str, ...], no_resume: bool) -> None:
+def train_command(dataset: Path, out: Path | None, config_file: Path | None, epochs: int | None,
+                  batch_size: int | None, lr: float | None, crop_size: int | None, device: str | None, seed: int | None,
+                  sets: tuple[str, ...], resume: bool, overwrite: bool) -> None:
     """Train the Neural DP Simulator on DATASET's train split (best checkpoint by val SSIM).
 
     Runs again in the same --out resume from last.pt. Multi-GPU / multi-node:
@@ -35,27 +38,34 @@ def train_command(dataset: Path, out_dir: Path | None, config_file: Path | None,
     """
     from .train import train
 
-    cfg = load_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop, device, seed))
-    out = out_dir or default_run_dir(dataset)
-    refuse_fresh_run_over(out, no_resume)
-    result = train(dataset, out, cfg, resume=not no_resume)
-    click.echo(report_run(out, result))
+    cfg = load_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop_size, device, seed))
+    run_dir = out or default_run_dir(dataset)
+    result = train(dataset, run_dir, cfg, resume=prepare_run_dir(run_dir, resume, overwrite))
+    click.echo(report_run(run_dir, result))
 
 
 def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str | None,
                    checkpoint: Path | None) -> list[SimulatorSpec]:
     """The simulators ``dp5k evaluate`` compares: each ``--simulator`` (or the deprecated ``--simulators a,b``), by
-    default the peers, the base model and the Neural DP Simulator. A bare ``neural`` takes the deprecated
-    ``--checkpoint``, else the ``best.pt`` that ``dp5k train`` wrote into its default run folder.
+    default every one available: the peers, the base model, and the Neural DP Simulator when there is a checkpoint
+    for it (the deprecated ``--checkpoint``, else the ``best.pt`` that ``dp5k train`` wrote into its default run
+    folder); without one the default leaves it out and says so.
 
     Raises:
-        BadInputError: ``--simulator`` together with ``--simulators``, a bad spec, or ``neural`` with no checkpoint.
+        BadInputError: ``--simulator`` together with ``--simulators``, a bad spec, or a named ``neural`` with no
+            checkpoint.
     """
-    texts = spec_texts(simulators, legacy_names) or [*PEERS, "base", "neural"]
+    texts = spec_texts(simulators, legacy_names)
     if checkpoint is not None:
         warn_deprecated("--checkpoint CKPT", "--simulator neural:CKPT")
     guess = default_run_dir(dataset) / "best.pt"
-    if "neural" in texts and checkpoint is None and not guess.is_file():
+    if not texts:
+        texts = [*PEERS, "base", "neural"]
+        if checkpoint is None and not guess.is_file():
+            texts.remove("neural")
+            log.info("no Neural DP checkpoint at %s (dp5k train writes one): comparing %s; --simulator neural:CKPT "
+                     "adds another checkpoint", guess, ", ".join(texts))
+    elif "neural" in texts and checkpoint is None and not guess.is_file():
         raise BadInputError(f"no checkpoint at {guess}; run 'dp5k train' first, name one with --simulator neural:CKPT, "
                             "or pick --simulator without neural", where=dataset)
     return [SimulatorSpec.parse(t, checkpoint or guess) for t in texts]
@@ -64,31 +74,36 @@ def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str
 @click.command("evaluate")
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--split", default="test", show_default=True, help="Split to evaluate.")
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None,
-              help="Output folder (metrics.json, table.md, figures/). Default: DATASET-eval-SPLIT beside the dataset.")
+@out_option("Output folder (metrics.json, table.md, figures/), replaced on each run.", required=False,
+            default_text="DATASET-eval-SPLIT beside the dataset")
 @click.option("--simulator", "simulators", multiple=True, metavar="SPEC",
-              help=f"A simulator to compare, repeatable: {SYNTAX}. Default: disk, butterworth, raytrace, base and "
-                   "neural, where a bare neural is the best.pt of DATASET-neural_dp (what dp5k train wrote).")
+              help=f"A simulator to compare, repeatable: {SYNTAX}. Default: every one available: disk, butterworth, "
+                   "raytrace, base, and neural when DATASET-neural_dp/best.pt exists (what dp5k train wrote; a bare "
+                   "neural means that checkpoint).")
 @click.option("--simulators", "legacy_names", default=None, metavar="A,B", help="Deprecated: --simulator A --simulator B.")
 @click.option("--checkpoint", type=click.Path(path_type=Path), default=None, help="Deprecated: --simulator neural:CKPT.")
-@click.option("--device", default="cpu", show_default=True)
+@device_option()
 @click.option("--max-pairs", type=int, default=0, help="Evaluate at most this many pairs (0 = all).")
 @click.option("--figures", type=int, default=2, show_default=True, help="Pairs that get a comparison picture.")
-def evaluate_command(dataset: Path, split: str, out_dir: Path | None, simulators: tuple[str, ...], legacy_names: str | None,
-                     checkpoint: Path | None, device: str, max_pairs: int, figures: int) -> None:
+@click.option("--fit-pairs", type=click.IntRange(min=1), default=8, show_default=True,
+              help="Training pairs (one crop of at most 256 px each) that simulators with free parameters (base) are "
+                   "fitted on before they are compared.")
+def evaluate_command(dataset: Path, split: str, out: Path | None, simulators: tuple[str, ...], legacy_names: str | None,
+                     checkpoint: Path | None, device: str, max_pairs: int, figures: int, fit_pairs: int) -> None:
     """Table 2: masked MAE / PSNR / SSIM of every simulator on the same pairs of DATASET."""
     from .evaluate import evaluate
 
     specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
-    out = out_dir or dataset.resolve().parent / f"{dataset.resolve().name}-eval-{split}"
-    result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures)
+    out = out or dataset.resolve().parent / f"{dataset.resolve().name}-eval-{split}"
+    result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures,
+                      fit_pairs=fit_pairs)
     click.echo(result.table_md.rstrip())
     click.echo(f"-> {out / 'metrics.json'}, {out / 'table.md'}, {out / 'figures'}")
 
 
 @click.command("synthesize")
 @click.argument("in_dir", type=click.Path(path_type=Path))
-@click.argument("out_dir", type=click.Path(path_type=Path))
+@out_option("The DP dataset (format v1) to write or continue.", legacy_positional=True)
 @click.option("--simulator", metavar="SPEC", default=None, help=f"The simulator (required): {SYNTAX}.")
 @click.option("--checkpoint", type=click.Path(path_type=Path), default=None, help="Deprecated: --simulator neural:CKPT.")
 @click.option("--f-number", "f_numbers", type=float, multiple=True,
@@ -107,18 +122,18 @@ def evaluate_command(dataset: Path, split: str, out_dir: Path | None, simulators
                    "shot=S,read=R (per channel S:S:S). Drawn from --seed.")
 @click.option("--batch-size", type=int, default=4, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True)
-def synthesize_command(in_dir: Path, out_dir: Path, simulator: str | None, checkpoint: Path | None,
+@device_option()
+def synthesize_command(in_dir: Path, out: Path, simulator: str | None, checkpoint: Path | None,
                        f_numbers: tuple[float, ...], focus_mm: float | None, max_coc_px: float, no_sensor_adjust: bool,
                        sensor_width_mm: float, encoding: str, depth_scale: float, noise: str, batch_size: int, seed: int,
                        device: str) -> None:
-    """Turn RGBD frames IN_DIR/<frame>/{image.png, depth.png|depth.npy, intrinsics.json} into a DP dataset OUT_DIR.
+    """Turn RGBD frames IN_DIR/<frame>/{image.png, depth.png|depth.npy, intrinsics.json} into a DP dataset --out OUT.
 
-    Resumable: frames already in OUT_DIR are skipped. Sharded over processes or machines (each rank
+    Always resumes: frames already in OUT are skipped. Sharded over processes or machines (each rank
     converts every N-th frame and resumes its own share; rank 0 writes the index once all are done):
 
     \b
-    torchrun --nproc_per_node N -m dp5k_cli synthesize IN_DIR OUT_DIR ...
+    torchrun --nproc_per_node N -m dp5k_cli synthesize IN_DIR --out OUT ...
     """
     from .synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
 
@@ -132,7 +147,7 @@ def synthesize_command(in_dir: Path, out_dir: Path, simulator: str | None, check
         max_coc_px=None if no_sensor_adjust else max_coc_px, sensor_width_mm=sensor_width_mm, encoding=encoding,
         depth_scale=depth_scale, batch_size=batch_size, seed=seed, device=device, noise=noise,
     )
-    summary = synthesize(in_dir, out_dir, cfg)
+    summary = synthesize(in_dir, out, cfg)
     rank = f" (rank {summary['rank']} of {summary['world_size']})" if summary["world_size"] > 1 else ""
-    click.echo(f"{out_dir}{rank}: wrote {summary['written']} pair(s), skipped {summary['skipped']} already done; "
+    click.echo(f"{out}{rank}: wrote {summary['written']} pair(s), skipped {summary['skipped']} already done; "
                f"{summary['pairs']} pair(s) in the dataset")

@@ -33,6 +33,7 @@ from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
 from dp5k_learn.batch import DPBatch
 from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
+from dp5k_learn.distributed import resolve_device
 from dp5k_learn.metrics import view_metrics
 
 from .simulators.catalog import SimulatorSpec, default_simulators
@@ -144,7 +145,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
             peers, the base model and, with ``checkpoint``, the Neural DP Simulator. Each is a column named by
             the simulator (its whole spec where two share a name).
         checkpoint: the Neural DP checkpoint (``best.pt`` written by ``dp5k train``) of a bare ``neural``.
-        device: torch device for the simulators.
+        device: torch device for the simulators, or ``auto`` (the first CUDA GPU, else the CPU).
         max_pairs: evaluate at most this many pairs (0 = all).
         figures: how many pairs get a comparison picture.
         fit_pairs / fit_crop_px: training crops given to simulators with free parameters.
@@ -167,7 +168,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     for spec in specs:
         spec.check_files()
     names = column_names(specs)
-    dev = torch.device(device)
+    dev = resolve_device(device)
     sims: dict[str, DPSimulator] = {}
     fitted: dict[str, dict[str, float]] = {}
     fit_batches: list[DPBatch] | None = None
@@ -222,7 +223,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         "specs": [str(spec) for spec in specs],
         "checkpoint": next((str(spec.checkpoint) for spec in specs if spec.is_neural), None), "device": str(dev),
         "metric_definitions": "masked MAE/PSNR/SSIM (dp5k_learn.metrics), mean of left and right view, mean over pairs",
-        "fitted_parameters": fitted, "means": means, "per_pair": per_pair,
+        "fitted_parameters": fitted, "fit_pairs": len(fit_batches or []), "means": means, "per_pair": per_pair,
     }
     write_json_atomic(out / "metrics.json", report)
     with atomic_path(out / "table.md") as tmp:

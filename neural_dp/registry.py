@@ -11,7 +11,8 @@ Other stages (``dp5k_diagnose``, ``dp5k_deblur``, the demo) import ``neural_dp``
   (:mod:`neural_dp.simulators.base`): :class:`BaseModel`, :class:`Component`, :data:`COMPONENTS`,
   :func:`fit_parameters`, :func:`lm_fit` with its :class:`Linearization` and :func:`clustered_intervals`, :func:`field_coords`, :func:`model_to_spec`,
   :func:`model_from_spec`.
-* The Neural DP Simulator and its structural extension: :class:`NeuralDPSimulator`, :func:`extend_multiscale`,
+* The Neural DP Simulator, its training and its structural extension: :class:`NeuralDPSimulator`,
+  :func:`train` (``dp5k train``) with its :class:`TrainConfig` and :class:`ModelConfig`, :func:`extend_multiscale`,
   :func:`finetune` (a fixed number of ``dp5k train`` steps), :data:`NEW_PARAMETER_PREFIX`.
 * Synthesis from RGBD frames (``dp5k synthesize``): :func:`synthesize`, :class:`SynthConfig`,
   :data:`PAPER_F_NUMBERS`.
@@ -19,7 +20,8 @@ Other stages (``dp5k_diagnose``, ``dp5k_deblur``, the demo) import ``neural_dp``
 
 from __future__ import annotations
 
-from .model import extend_multiscale
+from .config import TrainConfig
+from .model import ModelConfig, extend_multiscale
 from .simulators.base import BaseModel, Component, field_coords, fit_parameters
 from .simulators.base.components import COMPONENTS, Noise, fittable_names
 from .simulators.base.fit import Linearization, clustered_intervals, get_values, jacobian, lm_fit, set_values
@@ -29,12 +31,12 @@ from .simulators.catalog import (DIAGNOSED_PREFIX, NEURAL_PREFIX, PEERS, SYNTAX,
 from .simulators.interface import DPSimulator
 from .simulators.neural import NeuralDPSimulator
 from .synthesize import PAPER_F_NUMBERS, SynthConfig, synthesize
-from .train import NEW_PARAMETER_PREFIX, finetune
+from .train import NEW_PARAMETER_PREFIX, finetune, train
 
 __all__ = [
-    "BaseModel", "COMPONENTS", "Component", "DIAGNOSED_PREFIX", "DPSimulator", "NEURAL_PREFIX",
+    "BaseModel", "COMPONENTS", "Component", "DIAGNOSED_PREFIX", "DPSimulator", "ModelConfig", "NEURAL_PREFIX",
     "NEW_PARAMETER_PREFIX", "NeuralDPSimulator", "Noise", "PAPER_F_NUMBERS", "PEERS", "SYNTAX", "SimulatorSpec",
-    "SynthConfig", "default_simulators", "extend_multiscale", "field_coords", "finetune", "fit_parameters",
+    "SynthConfig", "TrainConfig", "default_simulators", "extend_multiscale", "field_coords", "finetune", "fit_parameters",
     "fittable_names", "get_simulator", "model_from_spec", "model_to_spec", "Linearization", "clustered_intervals", "jacobian", "lm_fit", "set_values", "get_values", "spec_texts",
-    "synthesize",
+    "synthesize", "train",
 ]

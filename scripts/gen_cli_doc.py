@@ -19,6 +19,35 @@ design and numbers are in its own page: [capture](capture.md), [studio](studio.m
 [processing](processing.md), [simulators](simulators.md), [diagnose](diagnose.md); formats in
 [data-format](data-format.md).
 
+## Conventions (every command)
+
+- **Inputs are arguments, the output is `--out` (`-o`).** `dp5k COMMAND INPUT... --out OUT`. Where a command
+  has a default OUT, its help says which; where it has none, `--out` is required. (`import`, `sl-depth`,
+  `process`, `synthesize`, `studio make-dataset`, `studio render` and `demo` used to take OUT as their last
+  argument: that still works for this release, with a deprecation line.)
+- **`--device auto|cpu|cuda|cuda:N`, default `auto`** (the first CUDA GPU torch sees, else the CPU) in every
+  command that runs a network: `train`, `evaluate`, `synthesize`, `diagnose`, `deblur train`, `deblur
+  evaluate`, `study downstream`. A CUDA device the machine does not have is refused before any work (exit 3).
+- **`--crop` is a region of the input frames** (`import`: `CAM=ROW0:ROW1,COL0:COL1`, `release`, `none`). The
+  side of a training patch is `--crop-size PX` (`train`, `deblur train`; their old `--crop PX` is deprecated).
+- **Earlier results in OUT: `--resume` / `--no-resume` / `--overwrite`**, the same words everywhere:
+  - `--resume`: continue: what OUT already holds is checked and kept, the rest is done. The default of the
+    commands built to be interrupted: `process`, `train`, `deblur train`, `demo`; `capture`, `synthesize` and
+    `study downstream` always resume. `import` resumes only when asked (`--resume`), so that two imports are
+    never mixed by accident.
+  - `--no-resume`: an OUT that holds an earlier run is refused; nothing is mixed or lost.
+  - `--overwrite`: start afresh, replacing the earlier run's results (`process`, `sl-depth`, `studio
+    make-dataset`, `train`, `deblur train`, `demo`; `demo --force` is its deprecated spelling). Raw captures and
+    imports are never overwritten: `capture` and `import` have no `--overwrite`.
+  - Reports computed from their inputs (`evaluate`, `diagnose`, `validate-depth`, `deblur evaluate`, `studio
+    render`) are replaced on each run.
+- **Deprecated spellings** still work for this release and print one line, `OLD is deprecated; use NEW`, on
+  stderr after the command's output; when the command fails, the note ends its one error line instead.
+- A processed dataset is validated by `dp5k check DATASET`; `dp5k verify` is for raw capture sessions and,
+  given a dataset, says so and runs the same check.
+
+## Global options and exit codes
+
 `dp5k [-v|-vv] [-q] COMMAND ...` — `-v` more logging and tracebacks on errors, `-q` only warnings and no
 progress bars (`DP5K_PROGRESS=0` also hides them). Errors print one line,
 `dp5k: error: <file/device/stage>: <problem>`, and exit with:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from dp5k_common.dataset import DatasetReader, PairParams, split_scenes, write_index, write_pair
+from dp5k_common.dataset import DatasetReader, PairParams, copy_pairs, split_scenes, write_index, write_pair
 from dp5k_common.errors import DatasetFormatError
 from dp5k_testing.tiny_dataset import make_arrays, make_params, make_tiny_dataset
 
@@ -232,3 +232,18 @@ def test_tile_geometry_reads_back(ds: Path) -> None:
     path = pair_dir(ds) / "params.json"
     path.write_text(json.dumps({**json.loads(path.read_text()), "crop_origin_px": [8, 4], "full_image_size": [96, 64]}))
     assert DatasetReader(ds).load("s0_cam0_f1.8").params.frame_geometry == ((8, 4), (96, 64))
+
+
+def test_copy_pairs_resplits_a_copy_resumes_and_leaves_the_source_alone(ds: Path, tmp_path: Path) -> None:
+    src = DatasetReader(ds)
+    train = src.ids("train")
+    before = (ds / "dataset.json").read_bytes()
+    out = tmp_path / "copy"
+    (out / "pairs" / f".{train[0]}.partial").mkdir(parents=True)  # an interrupted copy left this
+    copy_pairs(ds, out, {"train": train[1:], "val": [], "test": train[:1]}, source="held-out part")
+    got = DatasetReader(out)
+    assert got.ids("test") == train[:1] and got.ids("train") == train[1:] and got.extra["source"] == "held-out part"
+    assert got.load(train[0]).left.tolist() == src.load(train[0]).left.tolist()
+    assert not list((out / "pairs").glob(".*")) and (ds / "dataset.json").read_bytes() == before
+    with pytest.raises(DatasetFormatError, match="no pair 'nope'"):
+        copy_pairs(ds, tmp_path / "bad", {"train": ["nope"], "val": [], "test": []})

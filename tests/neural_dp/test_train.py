@@ -79,10 +79,11 @@ def test_cli_train_default_out_and_evaluate_finds_its_checkpoint(tmp_path: Path)
     assert json.loads((tmp_path / "ds-eval-test" / "metrics.json").read_text())["checkpoint"].endswith("best.pt")
 
 
-def test_evaluate_without_checkpoint_is_a_clear_error(tmp_path: Path) -> None:
+def test_evaluate_of_neural_without_checkpoint_is_a_clear_error(tmp_path: Path) -> None:
+    """Named, a neural without a checkpoint is refused; the default leaves it out (tests/test_cli_conventions.py)."""
     ds = tmp_path / "ds"
     make_tiny_dataset(ds, scenes=3, W=48, H=32)
-    res = CliRunner().invoke(main, ["evaluate", str(ds)])
+    res = CliRunner().invoke(main, ["evaluate", str(ds), "--simulator", "disk", "--simulator", "neural"])
     assert res.exit_code == 3 and "dp5k train" in res.output
 
 
