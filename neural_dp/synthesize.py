@@ -112,7 +112,7 @@ class SynthConfig:
     """depth.npy values times this are mm (1000 for metres)."""
     batch_size: int = 4
     seed: int = 0
-    device: str = "cpu"
+    device: str = "auto"
     noise: str = "nominal"
     """The views' sensor noise (:func:`~dp5k_common.sensor_noise.noise_from_spec`): ``nominal``, ``none``,
     ``measured:DATASET``, ``diagnosed:REPORT.json`` or ``shot=..,read=..``."""

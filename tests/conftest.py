@@ -18,3 +18,10 @@ def pytest_configure(config) -> None:  # noqa: ANN001 - pytest's Config
     import torch
 
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
+
+
+def pytest_collection_modifyitems(config, items) -> None:  # noqa: ANN001 - pytest's Config and Items
+    """End-to-end runs (``@pytest.mark.slow``) first, each group in its collected order. xdist hands tests out
+    in this order, so the long runs start while the many short tests fill the other workers' gaps; collected
+    last, one worker ran the slowest diagnose cells alone for the suite's final minutes."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -87,4 +87,4 @@ def test_the_study_maps_its_older_flags_onto_specs(tmp_path: Path) -> None:
     assert "Neural DP checkpoint not found" in res.output and "none.pt" in res.output
     res = CliRunner().invoke(main, ["study", "downstream", str(tmp_path / "rgbd"), str(tmp_path / "measured"), "--out",
                                     str(tmp_path / "study"), "--simulator", "base", "--simulator", "base"])
-    assert res.exit_code == 3 and "each simulator once" in res.output
+    assert res.exit_code == 3 and "one label per simulator" in res.output
