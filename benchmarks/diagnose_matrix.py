@@ -319,7 +319,7 @@ def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int
         shutil.copyfile(ds / "diagnose" / "report.json", out / "reports" / f"{case.slug}.json")
         row["causes"] = [c["name"] for c in rep.get("causes", [])]
         row["suspects"] = [s["name"] for s in rep.get("suspects", []) or []]
-        row["lookalikes"] = [{"names": list(g.get("names", [])), "capture": g.get("capture", "")} for g in rep.get("lookalikes", []) or []]
+        row["lookalikes"] = [{"names": list(g.get("names", [])), "capture": "; ".join(g.get("captures", []) or [g.get("capture", "")])} for g in rep.get("lookalikes", []) or []]
         row["gain_db"] = rep.get("gain", {}).get("psnr_after", 0.0) - rep.get("gain", {}).get("psnr_before", 0.0)
         row["timings_s"] = rep.get("timings_s", {})
     except Exception as exc:  # noqa: BLE001 - one failed case must not stop the matrix
