@@ -101,8 +101,11 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
             click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI [{c['gain_ci_db'][0]:+.3f}, "
                        f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
     for g in res.get("lookalikes") or []:
-        for other, capture in zip(g["names"][1:], g["captures"]):
-            click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data; to tell them apart, capture {capture})")
+        for other, capture, kind in zip(g["names"][1:], g["captures"], g.get("kinds") or ["instead"] * len(g["captures"])):
+            if kind == "also":
+                click.echo(f"look-alike: {g['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
+            else:
+                click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data; to tell them apart, capture {capture})")
     for sp in res.get("suspects") or []:
         click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
                    f"(95% CI [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")

@@ -139,7 +139,13 @@ def suspects_lines(result: dict[str, Any]) -> list[str]:
     lines: list[str] = []
     for g in result.get("lookalikes") or []:
         first, others = g["names"][0], g["names"][1:]
-        for o, cap, cc, lost in zip(others, g["captures"], g["correlation"], g["effect_size_lost"]):
+        kinds = g.get("kinds") or ["instead"] * len(others)
+        for o, cap, cc, lost, kind in zip(others, g["captures"], g["correlation"], g["effect_size_lost"], kinds):
+            if kind == "also":
+                lines += [f"**`{first}` may hide `{o}`.** Alone `{o}` would explain enough of the error to be named, but nothing "
+                          f"beyond what `{first}` explains (first-order correlation of their effects {cc:.2f}): this data cannot tell "
+                          f"whether `{o}` is present too. To tell, capture {cap}.", ""]
+                continue
             lines.append(f"**`{first}` or `{o}`: indistinguishable on this data.** Refitted in `{first}`'s place, `{o}` explains what it "
                          f"explained and predicts the detection pairs as well (loses {lost:+.3f} of the systematic error; first-order "
                          f"correlation of their effects {cc:.2f}). To tell them apart, capture {cap}.")

@@ -560,10 +560,18 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
     passes C's test: significant, and above C's threshold) and the detection pairs do not prefer C
     materially: the signed-rank test of C's model against F's is not significant, or what F loses is below
     :attr:`SelectConfig.lookalike_loss` of C's threshold (two fits of exactly equivalent models differ by
-    their convergence alone, consistently over every pair: a significant but negligible preference)."""
+    their convergence alone, consistently over every pair: a significant but negligible preference).
+    Such an F is reported with kind ``instead`` (one or the other).
+
+    A correlated F that is not is still reported, with kind ``also``, where C's effect contains it: alone F
+    would explain at least its threshold of the base model's systematic error, but beside every other effect
+    its unique part is below the screen's bar (:attr:`Screen.alone`, :attr:`Screen.unique`). The data then
+    cannot tell whether F is present beside C: a field-varying PSF's split leaking toward the edges planted
+    with an L/R gain ramp (another renderer, 2026-11-27) was all explained by the ramp's gain map, its unique
+    part 0.002 of the systematic error against 0.685 alone, at a correlation of 0.998."""
     groups = []
     for c in conf.names:
-        group = {"names": [c], "captures": [], "correlation": [], "effect_size_lost": [], "p_value": []}
+        group = {"names": [c], "captures": [], "correlation": [], "effect_size_lost": [], "p_value": [], "kinds": []}
         others = [f for f in comps if f not in conf.names and screen.correlation(c, f) >= sel.lookalike_corr]
         for f in sorted(others, key=lambda f: -screen.correlation(c, f))[: sel.lookalike_tries]:
             swap = submodel(conf.without[c], [m for m in conf.names if m != c]).with_component(copy.deepcopy(comps[f]))
@@ -585,6 +593,18 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
                 group["correlation"].append(_finite(screen.correlation(c, f)))
                 group["effect_size_lost"].append(_finite(lost))
                 group["p_value"].append(_finite(worse.p_value, 1.0))
+                group["kinds"].append("instead")
+        for f in others:
+            contained = screen.alone.get(f, 0.0) >= cfg.threshold(f) and screen.unique.get(f, 0.0) < sel.screen_share * cfg.threshold(f)
+            if f in group["names"] or not contained:
+                continue
+            log.info("look-alike %s inside %s: alone %.3f, unique %.4f", f, c, screen.alone[f], screen.unique[f])
+            group["names"].append(f)
+            group["captures"].append(separating_capture(c, f))
+            group["correlation"].append(_finite(screen.correlation(c, f)))
+            group["effect_size_lost"].append(None)
+            group["p_value"].append(None)
+            group["kinds"].append("also")
         if len(group["names"]) > 1:
             groups.append(group)
     return groups

@@ -419,3 +419,29 @@ def test_effect_test_is_not_fooled_by_a_few_pairs_with_large_gains() -> None:
     rng = np.random.default_rng(1)
     rate = np.mean([tiles.effect_test(rng.normal(0, 1, 16))[1] < 0.05 for _ in range(400)])
     assert rate < 0.08
+
+
+def test_an_effect_inside_a_named_cause_is_reported_as_possibly_present_too() -> None:
+    """A correlated effect that alone would pass its threshold but adds nothing beyond the named cause is a
+    look-alike of kind "also" (the data cannot exclude it); one that alone explains little is not."""
+    from dp5k_diagnose.config import SelectConfig
+    from dp5k_diagnose.selection import Confirmed, Screen, find_lookalikes
+
+    names = ["lr_gain_imbalance", "field_varying_psf", "focus_offset"]
+    corr = {("field_varying_psf", "lr_gain_imbalance"): 0.998, ("focus_offset", "lr_gain_imbalance"): 0.95,
+            ("field_varying_psf", "focus_offset"): 0.1}
+
+    def screen(alone_fvp: float, unique_fvp: float) -> Screen:
+        alone = {"lr_gain_imbalance": 0.9, "field_varying_psf": alone_fvp, "focus_offset": 0.01}
+        unique = {"lr_gain_imbalance": 0.2, "field_varying_psf": unique_fvp, "focus_offset": 0.001}
+        return Screen(dict(alone), alone, unique, corr, {}, ["lr_gain_imbalance"])
+
+    conf = Confirmed(["lr_gain_imbalance"], BaseModel(), None, None, {}, {}, {})  # type: ignore[arg-type]
+    comps = {n: None for n in names}
+    sel = SelectConfig(lookalike_tries=0)  # no swaps: only the containment rule
+    groups = find_lookalikes(conf, comps, screen(0.685, 0.002), [], None, DetectConfig(), sel)  # type: ignore[arg-type]
+    assert len(groups) == 1 and groups[0]["names"] == ["lr_gain_imbalance", "field_varying_psf"], groups
+    assert groups[0]["kinds"] == ["also"] and groups[0]["captures"][0]
+    # alone below its threshold (0.15): nothing to hide; a unique part above the screen's bar: it would be screened
+    assert find_lookalikes(conf, comps, screen(0.10, 0.002), [], None, DetectConfig(), sel) == []  # type: ignore[arg-type]
+    assert find_lookalikes(conf, comps, screen(0.685, 0.2), [], None, DetectConfig(), sel) == []  # type: ignore[arg-type]
