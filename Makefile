@@ -8,7 +8,7 @@ demo: setup
 	.venv/bin/dp5k demo demo-out
 
 test: setup
-	.venv/bin/python -m pytest -q -p no:cacheprovider --timeout=900 -n auto --maxprocesses 4 --dist load --durations=20
+	.venv/bin/python -m pytest -q -p no:cacheprovider --timeout=900 -n auto --maxprocesses 4 --dist worksteal --durations=20
 
 bench: setup
 	.venv/bin/python benchmarks/run_all.py

@@ -21,7 +21,8 @@ def pytest_configure(config) -> None:  # noqa: ANN001 - pytest's Config
 
 
 def pytest_collection_modifyitems(config, items) -> None:  # noqa: ANN001 - pytest's Config and Items
-    """End-to-end runs (``@pytest.mark.slow``) first, each group in its collected order. xdist hands tests out
-    in this order, so the long runs start while the many short tests fill the other workers' gaps; collected
-    last, one worker ran the slowest diagnose cells alone for the suite's final minutes."""
+    """End-to-end runs (``@pytest.mark.slow``) first, each group in its collected order: collected last, one
+    worker ran the slowest diagnose cells alone for the suite's final minutes. ``make test`` uses xdist's
+    work stealing, which shares the long runs out (``--dist load`` would give one worker the first contiguous
+    chunk, every slow test)."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
