@@ -101,7 +101,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
             click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI [{c['gain_ci_db'][0]:+.3f}, "
                        f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
     for g in res.get("lookalikes") or []:
-        for other, capture, kind in zip(g["names"][1:], g["captures"], g.get("kinds") or ["instead"] * len(g["captures"])):
+        for other, capture, kind in zip(g["names"][1:], g["captures"], g["kinds"]):
             if kind == "also":
                 click.echo(f"look-alike: {g['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
             else:

@@ -139,8 +139,7 @@ def suspects_lines(result: dict[str, Any]) -> list[str]:
     lines: list[str] = []
     for g in result.get("lookalikes") or []:
         first, others = g["names"][0], g["names"][1:]
-        kinds = g.get("kinds") or ["instead"] * len(others)
-        for o, cap, cc, lost, kind in zip(others, g["captures"], g["correlation"], g["effect_size_lost"], kinds):
+        for o, cap, cc, lost, kind in zip(others, g["captures"], g["correlation"], g["effect_size_lost"], g["kinds"]):
             if kind == "also":
                 lines += [f"**`{first}` may hide `{o}`.** Alone `{o}` would explain enough of the error to be named, but nothing "
                           f"beyond what `{first}` explains (first-order correlation of their effects {cc:.2f}): this data cannot tell "
