@@ -9,7 +9,7 @@ Other stages (``dp5k_diagnose``, ``dp5k_deblur``, the demo) import ``neural_dp``
   :func:`default_simulators`, :func:`spec_texts`, :data:`PEERS`, :data:`SYNTAX`.
 * The physical base model and its effect components, which ``dp5k diagnose`` detects, fits and writes out
   (:mod:`neural_dp.simulators.base`): :class:`BaseModel`, :class:`Component`, :data:`COMPONENTS`,
-  :func:`fit_parameters`, :func:`lm_fit` with its :class:`Linearization` and :func:`clustered_intervals`, :func:`field_coords`, :func:`model_to_spec`,
+  :func:`fit_parameters`, :func:`lm_fit` with its :class:`Linearization`, :func:`residual_vector` and :func:`clustered_intervals`, :func:`field_coords`, :func:`model_to_spec`,
   :func:`model_from_spec`.
 * The Neural DP Simulator, its training and its structural extension: :class:`NeuralDPSimulator`,
   :func:`train` (``dp5k train``) with its :class:`TrainConfig` and :class:`ModelConfig`, :func:`extend_multiscale`,
@@ -24,7 +24,7 @@ from .config import TrainConfig
 from .model import ModelConfig, extend_multiscale
 from .simulators.base import BaseModel, Component, field_coords, fit_parameters
 from .simulators.base.components import COMPONENTS, Noise, fittable_names
-from .simulators.base.fit import Linearization, clustered_intervals, get_values, jacobian, lm_fit, set_values
+from .simulators.base.fit import Linearization, clustered_intervals, get_values, jacobian, lm_fit, residual_vector, set_values
 from .simulators.base.spec import model_from_spec, model_to_spec
 from .simulators.catalog import (DIAGNOSED_PREFIX, NEURAL_PREFIX, PEERS, SYNTAX, SimulatorSpec, default_simulators,
                                  get_simulator, spec_texts)
@@ -37,6 +37,6 @@ __all__ = [
     "BaseModel", "COMPONENTS", "Component", "DIAGNOSED_PREFIX", "DPSimulator", "ModelConfig", "NEURAL_PREFIX",
     "NEW_PARAMETER_PREFIX", "NeuralDPSimulator", "Noise", "PAPER_F_NUMBERS", "PEERS", "SYNTAX", "SimulatorSpec",
     "SynthConfig", "TrainConfig", "default_simulators", "extend_multiscale", "field_coords", "finetune", "fit_parameters",
-    "fittable_names", "get_simulator", "model_from_spec", "model_to_spec", "Linearization", "clustered_intervals", "jacobian", "lm_fit", "set_values", "get_values", "spec_texts",
+    "fittable_names", "get_simulator", "model_from_spec", "model_to_spec", "Linearization", "clustered_intervals", "jacobian", "lm_fit", "residual_vector", "set_values", "get_values", "spec_texts",
     "synthesize", "train",
 ]
