@@ -445,3 +445,44 @@ def test_an_effect_inside_a_named_cause_is_reported_as_possibly_present_too() ->
     # alone below its threshold (0.15): nothing to hide; a unique part above the screen's bar: it would be screened
     assert find_lookalikes(conf, comps, screen(0.10, 0.002), [], None, DetectConfig(), sel) == []  # type: ignore[arg-type]
     assert find_lookalikes(conf, comps, screen(0.685, 0.2), [], None, DetectConfig(), sel) == []  # type: ignore[arg-type]
+
+
+def test_the_full_model_starts_no_worse_than_the_model_it_extends() -> None:
+    """A full model's Levenberg-Marquardt start is the screen's step where that fits the fit crops at least as
+    well as the nested model, a fraction of it where the step overshoots, and never worse than the nested
+    model (a re-screen's full model once started 10 x worse and ended there)."""
+    from dp5k_diagnose.selection import start_full_model
+    from neural_dp.registry import COMPONENTS, residual_vector
+
+    sharp = scene(3, n=2)
+    B, _, H, W = sharp.shape
+    planted = BaseModel(rim_softness_px=0.5, gain=1.0).with_component(COMPONENTS["misregistration"]())
+    planted.component("misregistration").params.update(left_dx_px=1.0, right_dx_px=1.0)
+    coc = torch.full((B, 1, H, W), 3.0)
+    with torch.no_grad():
+        left, right = planted.render(make_batch(sharp, coc), field_coords(B, H, W))
+    fit = [Sample(dataclasses.replace(make_batch(sharp, coc, left, right), pair_ids=("p0", "p1")), field_coords(B, H, W))]
+    nested_model = BaseModel(rim_softness_px=0.5, gain=1.0)
+    nested = {("base", k): float(v) for k, v in nested_model.params.items()}
+
+    def sse(m: BaseModel) -> float:
+        r = residual_vector(m, fit)
+        return float(r @ r)
+
+    def full() -> BaseModel:
+        return nested_model.with_component(COMPONENTS["misregistration"]())
+
+    nested_sse = sse(nested_model)
+    good = {("misregistration", "left_dx_px"): 0.9, ("misregistration", "right_dx_px"): 0.9}
+    m = full()
+    assert start_full_model(m, nested, good, fit) == 1.0
+    assert m.component("misregistration").params["left_dx_px"] == pytest.approx(0.9)
+    overshoot = {("misregistration", "left_dx_px"): 6.0, ("misregistration", "right_dx_px"): 6.0}
+    m = full()
+    t = start_full_model(m, nested, overshoot, fit)
+    assert 0.0 < t < 1.0  # 6 px overshoots, a fraction of it (<= 1.5 px) gets closer to the planted 1 px
+    assert sse(m) <= nested_sse
+    wrong = {("misregistration", "left_dx_px"): -4.0, ("misregistration", "right_dx_px"): -4.0}
+    m = full()
+    assert start_full_model(m, nested, wrong, fit) == 0.0  # every fraction of a wrong-way step is worse
+    assert m.component("misregistration").params["left_dx_px"] == 0.0 and sse(m) == pytest.approx(nested_sse)
