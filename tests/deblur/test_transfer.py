@@ -7,8 +7,8 @@ that excludes 0:
 * dp5k_testing/foreign_dp.py with its ``tent`` PSF sampling (per-pixel scattered half discs without occlusion, its
   own textures down to 2 px periods, all-in-focus sharp).
 
-Last run (2026-11-27, one thread): aperture +0.10 dB [+0.04, +0.15], foreign (tent) +0.27 dB [+0.06, +0.47], one
-training of about 25 s CPU shared by both tests.
+Last run (2026-11-27, one thread): aperture +0.10 dB [+0.04, +0.15], foreign (tent) +0.27 dB [+0.06, +0.47]; about
+40 CPU-s for both (one training of about 25 s, shared).
 
 Trained on the narrow pairs the issue started from (10 scenes, f/2 and f/4, each scene's own focus, no noise) the
 same deblurrer LOSES to L + R on both (docs/deblur.md, "Training data that transfers"); set
