@@ -240,9 +240,10 @@ def _write_tables(test: str, path: Path, out: Path, pair_ids: list[str], labels:
     n = cfg.few_real_pairs
     floor = row(INPUT_ROW, "measured_all", kind="input")
     t3 = [floor] + [row(f"synthetic: {lb}", f"synth_{lb}", lb) for lb in labels]
-    t4 = [row(f"measured: {n} pairs only (fine-tune budget)", "measured_few"),
-          row("measured: all train pairs (full budget)", "measured_all")]
-    t4 += [row(f"synthetic: {lb} + fine-tune on {n} measured pairs", f"synth_{lb}+few", lb) for lb in labels]
+    # the few and all train pairs are those of this test set's own dataset (MEASURED's, or --real's)
+    t4 = [row(f"{test}: {n} train pairs only (fine-tune budget)", "measured_few"),
+          row(f"{test}: all train pairs (full budget)", "measured_all")]
+    t4 += [row(f"synthetic: {lb} + fine-tune on {n} {test} train pairs", f"synth_{lb}+few", lb) for lb in labels]
     diffs = differences(t3, t4, rs)
     rows3 = [row_json(r, floor, rs) for r in t3]
     rows4 = [row_json(r, floor, rs) for r in t4]
