@@ -10,10 +10,15 @@ for the first seed on the first renderer (why it fails).
 Training sets (96 x 64 studio pairs, all-in-focus ``sharp``):
 
 * ``narrow``: the issue's (10 scenes, f/2 and f/4 at each scene's own focus, the rig's full-frame sensor, no noise);
-* ``diverse``: 60 scenes, one random capture each (focus, f-number 1.8-5.6, sensor format 1-12 px p99 CoC at f/1.8,
-  gain 1-30 x the nominal noise; ``dp5k studio make-dataset --random-captures 1``);
+* ``diverse``: 60 scenes, one random capture each (focus, f-number 1.8-5.6, sensor format 0.2-12 px p99 CoC at
+  f/1.8, gain 1-30 x the nominal noise; ``dp5k studio make-dataset --random-captures 1``);
 * ``diverse`` with one ingredient taken out: ``no-noise``, ``nominal-noise`` (gain 1), ``rig-sensor`` (no format
-  draw), ``10-scenes`` (10 scenes x 6 captures: as many pairs, fewer scenes).
+  draw), ``10-scenes`` (10 scenes x 6 captures: as many pairs, fewer scenes), ``coc-1-12`` (the format range of the
+  first diverse set, 1-12 px: no capture nearly all in focus).
+
+Beside each renderer's gain it prints, for the first seed, the mean gain on the pairs whose blurred input is already
+within noise of ``sharp`` (input PSNR above :data:`NEAR_SHARP_DB`) and on the others: a deblurrer that sharpens
+what is sharp loses many dB on the first kind (docs/deblur.md).
 
 Usage::
 
@@ -51,10 +56,13 @@ VARIANTS: dict[str, Callable[[Path, int], Path]] = {
     "nominal-noise": lambda out, seed: diverse_studio_pairs(out, seed, ("--noise-gain", "1:1")),
     "rig-sensor": lambda out, seed: diverse_studio_pairs(out, seed, ("--coc-px", "rig")),
     "10-scenes": lambda out, seed: diverse_studio_pairs(out, seed, ("--scenes", "10", "--random-captures", "6")),
+    "coc-1-12": lambda out, seed: diverse_studio_pairs(out, seed, ("--coc-px", "1:12")),
 }
 COC_BINS_PX = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 1e9)
 """|CoC| bin edges of the error table, px."""
 BOOTSTRAP = 4000
+NEAR_SHARP_DB = 45.0
+"""Input PSNR (dB) above which a test pair counts as already sharp (its L + R within about the noise of ``sharp``)."""
 
 
 def header() -> str:
@@ -133,7 +141,15 @@ def main() -> int:
             row[r] = {"mean_gain_db": float(gains.mean()), "ci95_db": [lo, hi], "per_seed_db": gains.mean(1).tolist(),
                       "input_psnr_db": pairs[r][0]["input_psnr"], "pairs": pairs[r]}
         results["variants"][v] = {**row, "wall_s": time.perf_counter() - t0}
+        for r in renderers:
+            p0 = pairs[r][0]["pairs"]
+            near = [a - b for a, b in p0.values() if b > NEAR_SHARP_DB]
+            rest = [a - b for a, b in p0.values() if b <= NEAR_SHARP_DB]
+            row[r]["seed0_near_sharp"] = {"pairs": len(near), "mean_gain_db": float(np.mean(near)) if near else None,
+                                          "others_mean_gain_db": float(np.mean(rest)) if rest else None}
         cells = "  ".join(f"{r}: {row[r]['mean_gain_db']:+.3f} [{row[r]['ci95_db'][0]:+.3f}, {row[r]['ci95_db'][1]:+.3f}]"
+                          + (f" (near-sharp {row[r]['seed0_near_sharp']['pairs']}: {row[r]['seed0_near_sharp']['mean_gain_db']:+.2f},"
+                             f" others {row[r]['seed0_near_sharp']['others_mean_gain_db']:+.3f})" if row[r]["seed0_near_sharp"]["pairs"] else "")
                           for r in renderers)
         print(f"{v:<14} {cells}   ({time.perf_counter() - t0:.0f} s)", flush=True)
     first = renderers[0]

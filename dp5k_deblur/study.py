@@ -179,6 +179,8 @@ def run_downstream(rgbd_dir: str | Path, real: str | Path, out: str | Path, cfg:
     per_seed: dict[tuple[str, str], list[DeblurScores]] = {}
     """(test set, row) -> one DeblurScores per seed."""
     labels: list[str] = []
+    synthetic_noise: dict[str, dict[str, Any] | None] = {}
+    """label -> the sensor noise model its first seed's synthetic pairs carry (``noise_model`` of their dataset.json)."""
 
     def scored(test: str, key: str, run: Path) -> None:
         per_seed.setdefault((test, key), []).append(score(load_deblurrer(run / "last.pt", cfg.device), sets[test], "test", cfg.device))
@@ -204,6 +206,7 @@ def run_downstream(rgbd_dir: str | Path, real: str | Path, out: str | Path, cfg:
                 synth = out / "synth" / f"seed{seed}" / label
                 synthesize(rgbd_dir, synth, SynthConfig(simulator=str(spec), f_numbers=cfg.f_numbers, max_coc_px=cfg.max_coc_px,
                                                          encoding=cfg.encoding, seed=seed, device=cfg.device))
+                synthetic_noise.setdefault(label, DatasetReader(synth).extra.get("noise_model"))
                 pre = out / "runs" / f"seed{seed}" / f"synth_{label}"
                 train_deblur(synth, pre, train_cfg)
                 for test in sets:
@@ -221,7 +224,7 @@ def run_downstream(rgbd_dir: str | Path, real: str | Path, out: str | Path, cfg:
     write_bytes_atomic(out / "tables.md", "\n".join(summary).encode())
     study = {"rgbd_frames": str(rgbd_dir), "test_sets": {k: str(v) for k, v in sets.items()}, "test_pairs": test_ids,
              "seeds": list(cfg.seeds), "simulators": {label: str(spec) for label, spec in specs}, "config": _jsonable(asdict(cfg)),
-             "timings_s": clock.wall, "cpu_s": clock.cpu,
+             "synthetic_noise": synthetic_noise, "timings_s": clock.wall, "cpu_s": clock.cpu,
              **{test: {k: v for k, v in r.items() if k != "markdown"} for test, r in report.items()}}
     write_json_atomic(out / "study.json", study)
     return study
@@ -240,9 +243,10 @@ def _write_tables(test: str, path: Path, out: Path, pair_ids: list[str], labels:
     n = cfg.few_real_pairs
     floor = row(INPUT_ROW, "measured_all", kind="input")
     t3 = [floor] + [row(f"synthetic: {lb}", f"synth_{lb}", lb) for lb in labels]
-    t4 = [row(f"measured: {n} pairs only (fine-tune budget)", "measured_few"),
-          row("measured: all train pairs (full budget)", "measured_all")]
-    t4 += [row(f"synthetic: {lb} + fine-tune on {n} measured pairs", f"synth_{lb}+few", lb) for lb in labels]
+    # the few and all train pairs are those of this test set's own dataset (MEASURED's, or --real's)
+    t4 = [row(f"{test}: {n} train pairs only (fine-tune budget)", "measured_few"),
+          row(f"{test}: all train pairs (full budget)", "measured_all")]
+    t4 += [row(f"synthetic: {lb} + fine-tune on {n} {test} train pairs", f"synth_{lb}+few", lb) for lb in labels]
     diffs = differences(t3, t4, rs)
     rows3 = [row_json(r, floor, rs) for r in t3]
     rows4 = [row_json(r, floor, rs) for r in t4]

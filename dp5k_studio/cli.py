@@ -54,7 +54,7 @@ def studio_group() -> None:
               help="Instead of every f-number at the scene's own focus: this many captures per scene and camera, each "
                    "with a random focus, f-number (from --f-numbers), sensor format and gain (training data that "
                    "transfers, docs/deblur.md).")
-@click.option("--coc-px", default="1:12", show_default=True,
+@click.option("--coc-px", default="0.2:12", show_default=True,
               help="With --random-captures: the 99th-percentile |CoC| at f/1.8 is drawn log-uniform from LOW:HIGH px "
                    "(the sensor format); 'rig' keeps the rig's full-frame sensor.")
 @click.option("--noise-gain", default="1:30", show_default=True,

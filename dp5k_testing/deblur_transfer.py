@@ -43,7 +43,7 @@ STUDIO_SIZE = (96, 64)
 DIVERSE_ARGS: tuple[str, ...] = ("--scenes", "60", "--size", "96x64", "--camera", "0", "--all-in-focus-sharp",
                                  "--random-captures", "1")
 """``dp5k studio make-dataset`` options of :func:`diverse_studio_pairs` (with the defaults of ``--f-numbers``
-1.8-5.6, ``--coc-px 1:12`` and ``--noise-gain 1:30``)."""
+1.8-5.6, ``--coc-px 0.2:12`` and ``--noise-gain 1:30``)."""
 
 
 def diverse_studio_pairs(out: Path, seed: int = 3, extra: tuple[str, ...] = ()) -> Path:
@@ -68,7 +68,7 @@ def narrow_studio_pairs(out: Path, seed: int = 3, scenes: int = 10) -> Path:
                         all_in_focus_sharp=True)
 
 
-RENDERERS = ("aperture", "aperture-50mm", "foreign")
+RENDERERS = ("aperture", "aperture-50mm", "foreign", "foreign-tent")
 """Test renderers of :func:`foreign_pairs`."""
 
 
@@ -79,17 +79,24 @@ def foreign_pairs(out: Path, renderer: str = "aperture", scenes: int = 24, seed:
       ``2e-4 I + (2e-3)^2`` on the views and on its f/22 ``sharp``);
     * ``aperture-50mm``: the same with a 50 mm lens (about twice the blur);
     * ``foreign``: :mod:`.foreign_dp` (per-pixel scattered half discs; 50 mm on 24 mm; noise ``2e-5 I + (1e-3)^2``;
-      all-in-focus ``sharp``; textures of stripes and checkers down to 2 px periods).
+      all-in-focus ``sharp``; textures of stripes and checkers down to 2 px periods), its default ``box`` PSF
+      sampling: a disc is integrated over pixels as if all of a pixel's light left from its centre, so a disc under
+      about 1 px stays inside its own pixel and leaves it unblurred;
+    * ``foreign-tent``: the same scenes with foreign_dp's ``tent`` sampling, the pixel integration of its own
+      radiance (constant over each canvas pixel: a uniform square of light spread by the disc and integrated over the
+      pixels is the disc convolved with a tent), which blurs sub-pixel discs as the studio does (docs/deblur.md,
+      "Why foreign_dp lost").
     """
     if renderer.startswith("aperture"):
         from .aperture_dp import write_dataset
 
         write_dataset(out, "none", scenes=scenes, size=(128, 86), f_numbers=(1.8, 4.0), seed=seed,
                       focal_length_mm=50.0 if renderer == "aperture-50mm" else 35.0)
-    elif renderer == "foreign":
+    elif renderer in ("foreign", "foreign-tent"):
         from .foreign_dp import write_dataset as write_foreign
 
-        write_foreign(out, None, scenes=scenes, size=(128, 86), f_numbers=(1.8, 4.0), seed=seed)
+        write_foreign(out, None, scenes=scenes, size=(128, 86), f_numbers=(1.8, 4.0), seed=seed,
+                      sampling="tent" if renderer == "foreign-tent" else "box")
     else:
         raise ValueError(f"unknown renderer {renderer!r}; known: {', '.join(RENDERERS)}")
     return out

@@ -70,6 +70,9 @@ def test_study_with_neural_dp_two_seeds_and_two_test_sets(tmp_path: Path) -> Non
     assert study["seeds"] == [0, 1] and study["config"]["few_real_pairs"] == 2
     assert set(study["cpu_s"]) >= {"neural: training on the measured train split", "disk: synthesis + deblurrers"}
     assert all(v > 0 for v in study["cpu_s"].values())
+    # the synthetic pairs carry dp5k synthesize's default sensor noise (issue 33 section 1), and study.json says so
+    assert set(study["synthetic_noise"]) == {"disk", "neural"}
+    assert all(m is not None and m["source"] == "nominal" and m["shot_var"][0] > 0 for m in study["synthetic_noise"].values())
     # every seed drew its own optics: the synthetic training sets differ between seeds
     p0 = [json.loads(p.read_text())["f_number"] for p in sorted((out / "synth" / "seed0" / "disk" / "pairs").glob("*/params.json"))]
     p1 = [json.loads(p.read_text())["f_number"] for p in sorted((out / "synth" / "seed1" / "disk" / "pairs").glob("*/params.json"))]
