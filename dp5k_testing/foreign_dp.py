@@ -148,9 +148,12 @@ def half_kernel(c: float, profile, split: float = 0.0, ss: int = 8, sampling: st
     ``|c| < 0.05`` px is a point of weight ``1 + 4 split / pi`` (a flat disc's share, to first order).
 
     ``sampling`` is how the continuous PSF becomes pixel weights: ``"box"`` integrates it over each pixel's
-    area (a sharp pixel is a uniform square of light); ``"tent"`` splats it bilinearly (a sharp pixel is a
-    sample of a linearly interpolated image, as dp5k's base model and studio do). They differ for discs of
-    a few px: a 1 px half disc's centroid is -0.10 px boxed and -0.21 px (exact) splatted.
+    area (the light of a sharp pixel is a point at its centre, collected by a square photodiode);
+    ``"tent"`` splats it bilinearly, which is the same integral for a sharp pixel whose light is a uniform
+    square (box source and box photodiode make a tent), as dp5k's base model and studio render. They differ
+    for discs of a few px: a 1 px half disc's centroid is -0.10 px boxed and -0.21 px (exact) splatted, and
+    a disc under about 1 px blurs nothing boxed (docs/deblur.md, "Why foreign_dp lost"); the default stays
+    ``"box"`` because the diagnose tests and matrix were measured with it.
     """
     R = abs(c) / 2
     if R < 0.025:
