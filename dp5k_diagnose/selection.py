@@ -706,7 +706,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         if not names:
             break
         full = base.replaced(sorted([copy.deepcopy(comps[n]) for n in names], key=lambda c: c.stage))
-        nested = conf.model  # the full model with its new effects neutral
+        nested = conf.model  # the model the full model extends (its new effects neutral)
         t = start_full_model(full, key_values(nested, targets_of(nested, fit)), values, fit)
         lin = refit(full, fit, sel.full_lm_iters)
         trace["full_models"].append({**full.describe(), "start_step": t})
