@@ -432,8 +432,9 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
     return Screen(share, alone, unique, corr, key_values(point, targets, x), candidates, systematic)
 
 
-START_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0)
-"""Fractions of the screen's joint step tried, in turn, as the full model's start (:func:`start_full_model`)."""
+START_STEPS = (1.0, 0.5, 0.25, 0.125)
+"""Fractions of the screen's joint step tried, in turn, as the full model's start (:func:`start_full_model`);
+when none fits as well as the nested model, the start is the nested model itself."""
 
 
 def start_full_model(full: BaseModel, nested: dict[Key, float], step: dict[Key, float], fit: Sequence[Sample]) -> float:
@@ -443,7 +444,8 @@ def start_full_model(full: BaseModel, nested: dict[Key, float], step: dict[Key, 
     as fitted: every parameter not in it, the new effects', stays neutral); ``step``, the screen's bounded
     Gauss-Newton step from there. The start is :math:`\theta_n + t (\theta_s - \theta_n)` for the first
     :math:`t` of :data:`START_STEPS` whose squared error on the fit crops is no larger than the nested
-    model's (:math:`t = 0` is the nested model itself). Levenberg-Marquardt accepts only steps that lower the
+    model's, else :math:`t = 0`, the nested model itself. Parameters ``step`` lacks (the confirmed causes')
+    keep their nested values. Levenberg-Marquardt accepts only steps that lower the
     error, so the full model then fits the fit crops at least as well as the model it extends. The first-order
     step can overshoot far: around a confirmed 1 px misregistration on another renderer it put a chromatic
     focal shift and the pixel sampling where the fit crops' error was 10 x the confirmed model's, and five
@@ -457,8 +459,6 @@ def start_full_model(full: BaseModel, nested: dict[Key, float], step: dict[Key, 
     r = residual_vector(full, fit)
     sse_nested = float(r @ r)
     for t in START_STEPS:
-        if t == 0.0:
-            break
         set_values(targets, theta_n + t * (theta_s - theta_n))
         r = residual_vector(full, fit)
         if float(r @ r) <= sse_nested:
@@ -729,7 +729,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         if not [n for n in again.candidates if n not in names]:
             break  # nothing the last full model did not already hold
         names = conf.names + again.candidates
-        values = {**key_values(conf.model, targets_of(conf.model, fit)), **again.values}  # the confirmed causes as fitted
+        values = again.values  # start_full_model keeps the confirmed causes as fitted
     for n in conf.names:
         ctx.removed.pop(n, None)
     trace["full_model"] = trace["full_models"][-1] if trace["full_models"] else {"components": {}}

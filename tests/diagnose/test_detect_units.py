@@ -44,9 +44,11 @@ def noisy_views(sharp: torch.Tensor, var_factor: float, common: torch.Tensor | N
     return views[0], views[1]
 
 
-def samples(sharp: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> list[Sample]:
+def samples(sharp: torch.Tensor, left: torch.Tensor, right: torch.Tensor, coc: torch.Tensor | None = None) -> list[Sample]:
+    """One sample of every pair (CoC ``coc``, (B, 1, H, W) px; in focus by default)."""
     B, _, H, W = sharp.shape
-    b = dataclasses.replace(make_batch(sharp, torch.zeros(B, 1, H, W), left, right), pair_ids=tuple(f"p{i}" for i in range(B)))
+    coc = torch.zeros(B, 1, H, W) if coc is None else coc
+    b = dataclasses.replace(make_batch(sharp, coc, left, right), pair_ids=tuple(f"p{i}" for i in range(B)))
     return [Sample(b, field_coords(B, H, W))]
 
 
@@ -461,7 +463,7 @@ def test_the_full_model_starts_no_worse_than_the_model_it_extends() -> None:
     coc = torch.full((B, 1, H, W), 3.0)
     with torch.no_grad():
         left, right = planted.render(make_batch(sharp, coc), field_coords(B, H, W))
-    fit = [Sample(dataclasses.replace(make_batch(sharp, coc, left, right), pair_ids=("p0", "p1")), field_coords(B, H, W))]
+    fit = samples(sharp, left, right, coc)
     nested_model = BaseModel(rim_softness_px=0.5, gain=1.0)
     nested = {("base", k): float(v) for k, v in nested_model.params.items()}
 
