@@ -24,7 +24,7 @@ from .findings import Finding
 from .fitting import fit_base
 from .selection import Selection, drop_cause, model_intervals, select_causes
 from .tiles import masked_mse
-from .gain import PairMetrics, bootstrap_ci, gain_report, pair_metrics_by_mask
+from .gain import TileErrors, bootstrap_ci, gain_report, pair_metrics_by_mask, tile_bootstrap_ci, tile_errors, tile_psnr
 from .neural_reach import NeuralReachConfig
 
 log = logging.getLogger(__name__)
@@ -265,7 +265,8 @@ def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig) -> Diagnosis:
     gain_split = next(k for k in splits if k not in ("fit", "detect"))
     held = reading.apply(full_samples(load_pairs(reader, splits[gain_split])))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held)
-    selection, causes, suspects = confirm_on_held_out(selection, base, before["predictable"], held, cfg)
+    before_tiles = tile_errors(lambda s: base.render(s.batch, s.field), held, cfg.detect.tile_px)
+    selection, causes, suspects = confirm_on_held_out(selection, base, before_tiles, held, cfg)
     extended = selection.extended()
     cause = selection.names[0] if selection.names else NO_EFFECT
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held)
@@ -282,21 +283,23 @@ def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig) -> Diagnosis:
                      selection.trace)
 
 
-def confirm_on_held_out(selection: Selection, base: BaseModel, before: PairMetrics, held: list[Sample], cfg: DiagnoseConfig,
+def confirm_on_held_out(selection: Selection, base: BaseModel, before: TileErrors, held: list[Sample], cfg: DiagnoseConfig,
                         ) -> tuple[Selection, list[dict[str, Any]], list[dict[str, Any]]]:
     """Name a cause only when it earns it on the held-out pairs: its PSNR gain given the other causes must have
-    a 95 % bootstrap CI above 0. While a cause's does not, the one with the lowest lower bound becomes a
-    *suspect* and the others are refitted and confirmed without it (:func:`dp5k_diagnose.selection.drop_cause`).
+    a 95 % bootstrap CI above 0 (tiles resampled within each held-out pair, :func:`dp5k_diagnose.gain.tile_bootstrap_ci`).
+    While a cause's does not, the one with the lowest lower bound becomes a *suspect* and the others are
+    refitted and confirmed without it (:func:`dp5k_diagnose.selection.drop_cause`).
 
     Returns (the selection, report.json ``causes``, report.json ``suspects``)."""
     suspects: list[dict[str, Any]] = []
+    tile = cfg.detect.tile_px
     while True:
-        def predictable(m: BaseModel) -> PairMetrics:
-            return before if m is base else pair_metrics_by_mask(lambda s: m.render(s.batch, s.field), held, ("predictable",))["predictable"]
+        def errors(m: BaseModel) -> TileErrors:
+            return before if m is base else tile_errors(lambda s: m.render(s.batch, s.field), held, tile)
 
-        step_metrics = [predictable(m) for m in selection.steps]
-        without_metrics = [predictable(m) for m in selection.without]
-        causes = cause_entries(selection, before, step_metrics, cfg, without_metrics)
+        step_errors = [errors(m) for m in selection.steps]
+        without_errors = [errors(m) for m in selection.without]
+        causes = cause_entries(selection, before, step_errors, cfg, without_errors)
         weak = [c for c in causes if c["name"] != "noise" and not c["gain_ci_db"][0] > 0.0]
         if not weak:
             return selection, causes, suspects
@@ -304,7 +307,7 @@ def confirm_on_held_out(selection: Selection, base: BaseModel, before: PairMetri
         log.info("%s is a suspect: its held-out gain given the other causes is %+.3f dB, 95 %% CI [%+.3f, %+.3f]", worst["name"],
                  worst["gain_db"], *worst["gain_ci_db"])
         suspects.append({"name": worst["name"], "params": worst["params"], "gain_db": worst["gain_db"], "gain_ci_db": worst["gain_ci_db"],
-                         "gain_per_pair_db": worst["gain_per_pair_db"],
+                         "gain_ci_pairs_db": worst["gain_ci_pairs_db"], "gain_per_pair_db": worst["gain_per_pair_db"],
                          "effect_size": worst["effect_size"], "p_value": worst["p_value"],
                          "why": "the detection pairs chose it, but its PSNR gain on the held-out pairs given the other causes has a 95 % CI "
                                 f"[{worst['gain_ci_db'][0]:+.3f}, {worst['gain_ci_db'][1]:+.3f}] dB that does not lie above 0",
@@ -325,49 +328,58 @@ def _mean(x: np.ndarray) -> float:
     return float(x[np.isfinite(x)].mean()) if np.isfinite(x).any() else 0.0
 
 
-def cause_entries(selection: Selection, before: PairMetrics, step_metrics: list[PairMetrics], cfg: DiagnoseConfig,
-                  without_metrics: list[PairMetrics] | None = None) -> list[dict[str, Any]]:
+def cause_entries(selection: Selection, before: TileErrors, step_errors: list[TileErrors], cfg: DiagnoseConfig,
+                  without_errors: list[TileErrors] | None = None) -> list[dict[str, Any]]:
     """report.json ``causes``: per chosen effect, in order, its parameters in the final (extended) model, its
-    test on the detection pairs given the other causes (effect size and p), and held-out PSNR gains (dB, mean over pairs with a 95 % bootstrap CI over pairs):
+    test on the detection pairs given the other causes (effect size and p), and held-out PSNR gains (dB, the
+    mean over the held-out pairs; the base model's, each step model's and each model without a cause's tile
+    errors on them, :func:`dp5k_diagnose.gain.tile_errors`):
 
     * ``gain_db`` / ``gain_ci_db``: what the cause adds to a model holding every other cause (the final model
-      against the final model without it, refitted; ``without_metrics``, aligned with the steps). Effects
+      against the final model without it, refitted; ``without_errors``, aligned with the steps). Effects
       that hide each other (a bright rim and a focus offset) each gain little alone and much beside the
       other; this is the gain that says the final model needs the cause. With one cause, the step's gain.
-    * ``step_gain_db`` / ``step_gain_ci_db``: what the step adds over the model of the steps before it.
+      The CI resamples tiles within each pair (:func:`dp5k_diagnose.gain.tile_bootstrap_ci`): the evidence
+      of these held-out captures, the one a cause must earn its name by. ``gain_ci_pairs_db`` resamples the
+      pairs instead (how much the gain varies between captures; with 4 held-out pairs it is nearly the
+      range of their gains).
+    * ``step_gain_db`` / ``step_gain_ci_db``: what the step adds over the model of the steps before it (CI
+      over tiles within pairs).
     * ``cumulative_gain_db``: the model after the step against the base model (the step gains add up to it).
 
     ``noise`` comes last with every gain exactly 0 (a prediction is an expectation)."""
     final = selection.model
-    final_metrics = step_metrics[-1] if step_metrics else None
+    final_errors = step_errors[-1] if step_errors else None
     by_name = {f.effect: f for f in selection.findings}
+    before_psnr = tile_psnr(before)
     out: list[dict[str, Any]] = []
-    prev = before.psnr
+    prev, prev_errors = before_psnr, before
     cumulative = 0.0
-    for k, (name, pm) in enumerate(zip(selection.causes, step_metrics)):
+    for k, (name, te) in enumerate(zip(selection.causes, step_errors)):
         comp = final.component(name)
         f = by_name[name]
-        d = pm.psnr - prev
-        lo, hi = bootstrap_ci(d, cfg.n_boot, seed=cfg.seed)
-        if without_metrics is not None and final_metrics is not None:
-            g = final_metrics.psnr - without_metrics[k].psnr
-            glo, ghi = bootstrap_ci(g, cfg.n_boot, seed=cfg.seed)
+        psnr = tile_psnr(te)
+        d = psnr - prev
+        lo, hi = tile_bootstrap_ci(prev_errors, te, cfg.n_boot, seed=cfg.seed)
+        if without_errors is not None and final_errors is not None:
+            g = tile_psnr(final_errors) - tile_psnr(without_errors[k])
+            glo, ghi = tile_bootstrap_ci(without_errors[k], final_errors, cfg.n_boot, seed=cfg.seed)
         else:
             g, glo, ghi = d, lo, hi
-        cumulative = _mean(pm.psnr - before.psnr)
+        cumulative = _mean(psnr - before_psnr)
         out.append({"name": name, "step": k + 1, "params": _json_params(comp.describe()), "param_intervals": {},
                     "effect_size": f.effect_size, "p_value": f.p_value,
-                    "gain_db": _mean(g), "gain_ci_db": [glo, ghi],
-                    "gain_per_pair_db": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, np.broadcast_to(g, before.psnr.shape))},
+                    "gain_db": _mean(g), "gain_ci_db": [glo, ghi], "gain_ci_pairs_db": list(bootstrap_ci(g, cfg.n_boot, seed=cfg.seed)),
+                    "gain_per_pair_db": {pid: (float(x) if np.isfinite(x) else None) for pid, x in zip(before.pair_ids, g)},
                     "step_gain_db": _mean(d), "step_gain_ci_db": [lo, hi], "cumulative_gain_db": cumulative,
                     "explanation": f.explanation})
-        prev = pm.psnr
+        prev, prev_errors = psnr, te
     nz = selection.noise
     if nz is not None and nz.detected:
         out.append({"name": "noise", "step": len(out) + 1, "params": _json_params(nz.params),
                     "param_intervals": {n: list(v) for n, v in nz.intervals.items()}, "effect_size": nz.effect_size,
-                    "p_value": nz.p_value, "gain_db": 0.0, "gain_ci_db": [0.0, 0.0], "step_gain_db": 0.0,
-                    "step_gain_ci_db": [0.0, 0.0], "cumulative_gain_db": cumulative, "explanation": nz.explanation})
+                    "p_value": nz.p_value, "gain_db": 0.0, "gain_ci_db": [0.0, 0.0], "gain_ci_pairs_db": [0.0, 0.0],
+                    "step_gain_db": 0.0, "step_gain_ci_db": [0.0, 0.0], "cumulative_gain_db": cumulative, "explanation": nz.explanation})
     return out
 
 

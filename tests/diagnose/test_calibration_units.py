@@ -109,7 +109,7 @@ def test_focus_offset_recomputes_the_coc_from_the_float_coc_not_rounded_depth() 
 
 def test_causes_put_noise_after_every_structural_cause_and_add_up_the_step_gains() -> None:
     from dp5k_diagnose.findings import Finding
-    from dp5k_diagnose.gain import PairMetrics
+    from dp5k_diagnose.gain import TileErrors
     from dp5k_diagnose.run import DiagnoseConfig, cause_entries
     from dp5k_diagnose.selection import Selection
     from neural_dp.simulators.base.components import DisparityScale, Noise
@@ -127,10 +127,19 @@ def test_causes_put_noise_after_every_structural_cause_and_add_up_the_step_gains
     assert sel.names == ["lr_gain_imbalance", "disparity_scale", "noise"]
     assert sel.extended().component("noise") is not None
     ids = [f"p{i}" for i in range(4)]
-    flat = np.zeros(4)
-    before = PairMetrics(ids, np.array([30.0, 31.0, 32.0, 33.0]), flat, flat)
-    after1 = PairMetrics(ids, before.psnr + np.array([10.0, 11.0, 9.0, 10.0]), flat, flat)
-    after2 = PairMetrics(ids, after1.psnr + np.array([2.0, 1.0, 3.0, 2.0]), flat, flat)
+    rng = np.random.default_rng(0)
+
+    def tiles(psnr: np.ndarray) -> TileErrors:
+        """Tile errors whose pairs have these PSNRs (dB), spread unevenly over 6 tiles of 300 values each."""
+        share = rng.uniform(0.5, 1.5, (4, 2, 6))
+        share /= share.sum(-1, keepdims=True)
+        count = np.full((4, 6), 300.0)
+        return TileErrors(ids, share * (10.0 ** (-psnr / 10.0) * 1800.0)[:, None, None], count)
+
+    before_psnr = np.array([30.0, 31.0, 32.0, 33.0])
+    after1_psnr = before_psnr + np.array([10.0, 11.0, 9.0, 10.0])
+    after2_psnr = after1_psnr + np.array([2.0, 1.0, 3.0, 2.0])
+    before, after1, after2 = tiles(before_psnr), tiles(after1_psnr), tiles(after2_psnr)
     out = cause_entries(sel, before, [after1, after2], DiagnoseConfig(n_boot=200))
     assert [c["name"] for c in out] == ["lr_gain_imbalance", "disparity_scale", "noise"]
     assert out[0]["step_gain_db"] == pytest.approx(10.0) and out[1]["step_gain_db"] == pytest.approx(2.0)
@@ -141,8 +150,9 @@ def test_causes_put_noise_after_every_structural_cause_and_add_up_the_step_gains
     assert out[0]["effect_size"] == 0.9 and out[1]["p_value"] == 1e-3  # each cause's test given the others
     # given the others: the final model against the final model without the cause (here the first cause adds
     # 4 dB to a model that has the second, whatever it added alone at step 1)
-    without_lr = PairMetrics(ids, after2.psnr - np.array([4.0, 5.0, 3.0, 4.0]), flat, flat)
+    without_lr = tiles(after2_psnr - np.array([4.0, 5.0, 3.0, 4.0]))
     without_ds = after1
     out = cause_entries(sel, before, [after1, after2], DiagnoseConfig(n_boot=200), [without_lr, without_ds])
     assert out[0]["gain_db"] == pytest.approx(4.0) and out[0]["step_gain_db"] == pytest.approx(10.0)
     assert out[1]["gain_db"] == pytest.approx(2.0) and out[0]["gain_ci_db"][0] > 0
+    assert out[0]["gain_per_pair_db"]["p1"] == pytest.approx(5.0) and out[0]["gain_ci_pairs_db"][0] >= 3.0 - 1e-9
