@@ -98,7 +98,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
     if len(res["causes"]) > 1:
         click.echo("every cause, in order:")
         for c in res["causes"]:
-            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI [{c['gain_ci_db'][0]:+.3f}, "
+            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI over held-out tiles [{c['gain_ci_db'][0]:+.3f}, "
                        f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
     for g in res.get("lookalikes") or []:
         for other, capture, kind in zip(g["names"][1:], g["captures"], g["kinds"]):
@@ -108,11 +108,11 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
                 click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data; to tell them apart, capture {capture})")
     for sp in res.get("suspects") or []:
         click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
-                   f"(95% CI [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")
+                   f"(95% CI over held-out tiles [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")
     cov = res["fit_coverage"]
     click.echo(f"fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, {cov['field_zones']} of {cov['field_zones_of']} field zones")
     click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
-               f"(95% CI of the gain [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
+               f"(95% CI of the gain over pairs [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
     av = g.get("all_valid")
     if av:
         click.echo(f"  all valid pixels: PSNR {av['psnr_before']:.3f} -> {av['psnr_after']:.3f} dB "

@@ -162,7 +162,8 @@ def causes_lines(result: dict[str, Any]) -> list[str]:
              "that removing it from the final model gives back on the detection pairs, the others refitted; p: "
              "signed-rank test over pairs, Holm-corrected over the causes). A cause is named only when its held-out gain "
              "given the others has a 95 % CI above 0; otherwise it is a suspect. Held-out PSNR gains, 95 % bootstrap CI "
-             "over pairs: *given the others* is what the cause adds to a model holding every other cause (the final model "
+             "over the 32 px tiles within each held-out pair (what these captures show beyond their noise; in brackets "
+             "after *pairs*, the CI over pairs: how the gain varies from capture to capture): *given the others* is what the cause adds to a model holding every other cause (the final model "
              "against it without the cause, refitted), *step* what it adds over the steps before it; the step gains add "
              "up to the cumulative one. Parameters are those of the final model, all chosen effects refitted "
              "together, with 95 % intervals clustered over the fit pairs. `noise` comes last: a prediction is an "
@@ -178,8 +179,10 @@ def causes_lines(result: dict[str, Any]) -> list[str]:
             par = ", ".join(f"{k}={_num(v)}" + (f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else "")
                             for k, v in c["params"].items() if isinstance(v, float))
             lo, hi = c["gain_ci_db"]
+            plo, phi = c.get("gain_ci_pairs_db", (lo, hi))
             slo, shi = c["step_gain_ci_db"]
             lines.append(f"| {c['step']} | `{c['name']}` | {c['effect_size']:.3f} | {c['p_value']:.2g} | {c['gain_db']:+.3f} [{lo:+.3f}, {hi:+.3f}] "
+                         f"(pairs [{plo:+.3f}, {phi:+.3f}]) "
                          f"| {c['step_gain_db']:+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
         lines.append("")
     lines += suspects_lines(result)
