@@ -300,7 +300,8 @@ def confirm_on_held_out(selection: Selection, base: BaseModel, before: TileError
         step_errors = [errors(m) for m in selection.steps]
         without_errors = [errors(m) for m in selection.without]
         causes = cause_entries(selection, before, step_errors, cfg, without_errors)
-        weak = [c for c in causes if c["name"] != "noise" and not c["gain_ci_db"][0] > 0.0]
+        # the point gain too: a percentile interval above 0 around a negative mean is possible in principle
+        weak = [c for c in causes if c["name"] != "noise" and not (c["gain_ci_db"][0] > 0.0 and c["gain_db"] > 0.0)]
         if not weak:
             return selection, causes, suspects
         worst = min(weak, key=lambda c: (c["gain_ci_db"][0], c["gain_db"]))
