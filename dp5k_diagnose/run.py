@@ -353,6 +353,7 @@ def cause_entries(selection: Selection, before: TileErrors, step_errors: list[Ti
     final_errors = step_errors[-1] if step_errors else None
     by_name = {f.effect: f for f in selection.findings}
     before_psnr = tile_psnr(before)
+    final_psnr = tile_psnr(final_errors) if final_errors is not None else None
     out: list[dict[str, Any]] = []
     prev, prev_errors = before_psnr, before
     cumulative = 0.0
@@ -363,7 +364,7 @@ def cause_entries(selection: Selection, before: TileErrors, step_errors: list[Ti
         d = psnr - prev
         lo, hi = tile_bootstrap_ci(prev_errors, te, cfg.n_boot, seed=cfg.seed)
         if without_errors is not None and final_errors is not None:
-            g = tile_psnr(final_errors) - tile_psnr(without_errors[k])
+            g = final_psnr - tile_psnr(without_errors[k])
             glo, ghi = tile_bootstrap_ci(without_errors[k], final_errors, cfg.n_boot, seed=cfg.seed)
         else:
             g, glo, ghi = d, lo, hi
