@@ -13,7 +13,8 @@ lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
                       receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
                       cat's-eye vignetting: at field x the pupil cut by a unit circle centred ``vignetting`` x
-                      pupil radii along x (each view's brightness corrected back)
+                      pupil radii along x (each view's brightness corrected back); the split line moved to pupil
+                      x = ``split_shift`` x (each view's PSF and share of the light change, :func:`split_share`)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);
@@ -46,7 +47,7 @@ from dp5k_learn.batch import DPBatch
 
 from .field import field_r2
 from .model import Component
-from .psf import PSFShape
+from .psf import PSFShape, split_share
 
 
 class LRGainImbalance(Component):
@@ -107,6 +108,12 @@ class FieldVaryingPSF(Component):
       x the pupil is cut by a circle of radius 1 centred ``vignetting`` x pupil radii along x, each view's
       brightness corrected back (its PSF, not its light, changes: the clipped half's blur narrows and its
       disparity shrinks). Its sign says which side the clipping element sits on.
+    * ``split_shift``: the photodiodes' split line itself moves off axis (the microlens offset against the chief
+      ray's angle): at field x it crosses the pupil at :math:`u_x = ` ``split_shift`` x pupil radii (the left
+      photodiode takes :math:`u_x <` it). Each view's PSF is the part of the disc on its side of the line, and
+      its light is its share of the pupil (:func:`split_share`: the left view brightens where the line moves
+      right), not corrected back. ``edge_leak`` is the same cause seen as a mixing of the views' light; which
+      of the two a sensor follows shows in the PSFs' shapes at the edges.
     """
 
     name = "field_varying_psf"
@@ -115,28 +122,36 @@ class FieldVaryingPSF(Component):
 
     def __init__(self) -> None:
         super().__init__()
-        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0, "vignetting": 0.0}
+        self.params = {"coc_growth_at_corner": 0.0, "edge_leak": 0.0, "vignetting": 0.0, "split_shift": 0.0}
         self.fit_names = list(self.params)
-        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5), "vignetting": (-1.2, 1.2)}
-        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02, "vignetting": 0.05}
+        self.bounds = {"coc_growth_at_corner": (-0.9, 3.0), "edge_leak": (-0.5, 0.5), "vignetting": (-1.2, 1.2), "split_shift": (-0.9, 0.9)}
+        self.steps = {"coc_growth_at_corner": 0.03, "edge_leak": 0.02, "vignetting": 0.05, "split_shift": 0.03}
 
     @property
     def field_x_dependent(self) -> bool:  # type: ignore[override]
-        return self.params.get("vignetting", 0.0) != 0.0
+        return self.params.get("vignetting", 0.0) != 0.0 or self.params.get("split_shift", 0.0) != 0.0
 
     @property
     def changes_psf(self) -> bool:  # type: ignore[override]
-        return self.params.get("vignetting", 0.0) != 0.0
+        return self.field_x_dependent
 
     def coc(self, coc_px: Tensor, batch: DPBatch, field: Tensor) -> Tensor:
         return coc_px * (1.0 + self.params["coc_growth_at_corner"] * field_r2(field))
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
         v = self.params.get("vignetting", 0.0)
-        return replace(shape, clip_dx=shape.clip_dx + v * self.field_x) if v else shape
+        s = self.params.get("split_shift", 0.0)
+        if v:
+            shape = replace(shape, clip_dx=shape.clip_dx + v * self.field_x)
+        if s:
+            shape = replace(shape, split_dx=shape.split_dx + s * self.field_x)
+        return shape
 
     def post(self, left: Tensor, right: Tensor, batch: DPBatch, field: Tensor) -> tuple[Tensor, Tensor]:
         x = field[:, :1]
+        s = self.params.get("split_shift", 0.0)
+        if s:  # each view's share of the pupil's light (the kernels sum to 1)
+            left, right = left * split_share(s * x), right * split_share(-s * x)
         b = self.params["edge_leak"]
         return crosstalk(left, right, b * (-x).clamp(min=0), b * x.clamp(min=0))
 

@@ -48,6 +48,11 @@ class PSFShape:
     clip_dx: Tensor | float = 0.0
     """Vignetting: the pupil is cut by a circle of radius 1 (pupil radii) centred ``clip_dx`` pupil radii along x
     (0: no cut; a cat's-eye pupil off axis, where a lens element other than the stop clips the beam)."""
+    split_dx: Tensor | float = 0.0
+    """Where the photodiodes' split line crosses the pupil, pupil radii along x: the left photodiode takes the
+    pupil part :math:`u_x < ` ``split_dx`` (0: the ideal half; off axis the chief ray's angle moves it). The
+    kernel keeps its shape only (it sums to 1); the share of light each view gets is applied by the component
+    that moves the split (:func:`split_share`)."""
     f_number: float = 0.0
     """The f-number of the pairs being rendered (0: not known); context for components whose PSF depends on
     the aperture (:attr:`neural_dp.simulators.base.model.Component.shape_needs_optics`), not a kernel input."""
@@ -110,14 +115,14 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
         return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
 
     cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box, shape.sa_px,
-                                  shape.clip_dx)]
+                                  shape.clip_dx, shape.split_dx)]
     kernels = []
     for k in range(K):
         node = tuple(c[k] for c in cols)
         key = (str(coc.device), supersample) + node
         ker = _KERNEL_CACHE.get(key)
         if ker is None:
-            build = _half_disc_kernel if node[-2] == 0.0 and node[-1] == 0.0 else _pushforward_kernel
+            build = _half_disc_kernel if node[7] == 0.0 and node[8] == 0.0 else _pushforward_kernel  # sa_px, clip_dx
             ker = build(*node, supersample=supersample, device=coc.device)
             _KERNEL_CACHE[key] = ker
             if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
@@ -135,7 +140,7 @@ def stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
 
 
 def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                      pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, supersample: int = 4,
+                      pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, supersample: int = 4,
                       device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
 
@@ -144,9 +149,11 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
     .. math::
         D(\rho) = \mathrm{clip}((R' - \rho) ss + 1/2, 0, 1), \quad R' = \max(R, 1/(2 ss))
         P(\rho) = \max(0, 1 + a_2 q + a_4 q^2), \quad q = \min(\rho / R', 1)^2
-        S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < 0], \quad k' = k R / R'
+        S(x) = (1 - k')/2 + k' [x \cdot \mathrm{sign}(c) < s R], \quad k' = k R / R'
         H_l = ((1 - \beta) \mathrm{tent} + \beta\, \mathrm{box})(G_\sigma * (D P S)) / \sum
 
+    ``s`` is ``split_dx`` (the split line's place in the pupil, pupil radii: a ray through pupil x ``u`` lands at
+    ``u c / 2`` px, so the left photodiode's part ``u < s`` lands where ``x sign(c) < s R``).
     ``G_sigma`` is a Gaussian of standard deviation ``softness_px`` (the lens' residual blur, px). ``tent``
     samples the fine PSF at pixel centres through a 2-px triangle: the sharp image is reconstructed by
     linear interpolation between pixel centres, so a sub-pixel disc keeps its exact centroid
@@ -176,7 +183,8 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
     q = (rho / Reff).clamp(max=1.0) ** 2
     prof_w = (1.0 + a2 * q + a4 * q * q).clamp(min=0.0)
     sign = 1.0 if coc_px >= 0 else -1.0
-    left_half = (fx * sign < 0).float() + 0.5 * (fx == 0).float()
+    line = float(split_dx) * float(R)  # px: where the split line lands (x sign(c))
+    left_half = (fx * sign < line).float() + 0.5 * (fx * sign == line).float()
     sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
     w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
     return _to_pixels(w, n, ss, beta)
@@ -213,7 +221,7 @@ def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Ten
 
 
 def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                        pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, supersample: int = 4,
+                        pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, supersample: int = 4,
                         device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node with spherical aberration, as the pushforward of the pupil.
 
@@ -227,7 +235,8 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     pixels like the thin-lens kernel. Zones whose :math:`c_\rho` changes sign land on the other side: that is
     how the PSF inverts its rim between front and back of focus. With ``clip_dx`` the pupil is also cut by a
     circle of radius 1 centred ``clip_dx`` along x (vignetting); each view's PSF still sums to 1 (the
-    camera's per-view shading correction restores its brightness).
+    camera's per-view shading correction restores its brightness). ``split_dx`` moves the split line to
+    :math:`u_x = ` ``split_dx``, as in :func:`_half_disc_kernel`.
     """
     c = float(coc_px) * float(scale)
     a = float(sa_px)
@@ -242,6 +251,8 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     ux, uy, rho2, left = _pupil_grid(m, device)
     inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + uy**2 <= 1.0)
     ux, uy, rho2, left = ux[inside], uy[inside], rho2[inside], left[inside]
+    if split_dx:
+        left = (ux < split_dx).float()
     w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0) * ((1.0 - split) / 2.0 + split * left)
     zone = c - a * (rho2 - 0.6)
     N = n * ss
@@ -260,6 +271,18 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     fine = torch.bincount(torch.cat(idx), torch.cat(wts), minlength=N * N).float()
     fine = _soften(fine.view(N, N), sigma * ss)
     return _to_pixels(fine, n, ss, beta)
+
+
+def split_share(split_dx: Tensor) -> Tensor:
+    r"""The left photodiode's share of a uniform pupil's light when the split line sits at pupil x ``split_dx``
+    (pupil radii, clipped to [-1, 1]), as a multiple of the ideal half: :math:`2 A(s)` with
+
+    .. math::  A(s) = \frac{1}{2} + \frac{s \sqrt{1 - s^2} + \arcsin s}{\pi}
+
+    the area of the unit disc left of :math:`u_x = s` over :math:`\pi` (1 at ``split_dx`` 0, about
+    :math:`1 + 4 s / \pi` near it). The right photodiode's is ``split_share(-split_dx)`` (they add to 2)."""
+    s = split_dx.clamp(-1.0, 1.0)
+    return 1.0 + 2.0 * (s * torch.sqrt((1.0 - s * s).clamp(min=0.0)) + torch.asin(s)) / math.pi
 
 
 def full_disc_kernels(nodes: Tensor, supersample: int) -> Tensor:
