@@ -35,7 +35,7 @@ import tifffile
 
 EFFECT_DEFAULTS: dict[str, float] = {
     "lr_gain_imbalance": 0.08,  # left gain 1 + a (1 + 0.5 x_n), right 1 - a (1 + 0.5 x_n)
-    "field_varying_psf": 0.25,  # CoC x (1 + a r_n^2); the split line moves by 1.2 a (-x_n) of the disc radius
+    "field_varying_psf": 0.25,  # CoC x (1 + a r_n^2); the split line moves by 1.2 a (-x_n) of the disc radius (smoothly)
     "chromatic_defocus": 0.12,  # focal length of red +a mm, blue -a mm
     "disparity_scale": 0.3,  # crosstalk: each view takes this share of the other half's light
     "focus_offset": 0.06,  # the lens focuses at F_rec (1 + a)
@@ -266,8 +266,14 @@ def render_views(scene: ForeignScene, o: ForeignOptics, planted: Planted, sampli
     F_true = o.focus_distance_mm * (1 + planted.get("focus_offset"))
     ca, fvp = planted.get("chromatic_defocus"), planted.get("field_varying_psf")
     leak = np.full((h, w), planted.get("disparity_scale"))
-    # off axis the split line moves (microlens offset): split = 1.2 a (-x_n) of the radius, in 9 field bands
-    band = np.clip(np.round((xn + 1) * 4), 0, 8).astype(np.int64)
+    # off axis the split line moves (microlens offset): split = 1.2 a (-x_n) of the radius, rendered at 9 field
+    # bands (x_n = -1, -0.75, ..., 1) with each pixel's light shared linearly between its two bracketing bands, so
+    # that the split (and each view's share of the light, about 1 + 4 split / pi) changes smoothly across the
+    # field. Until 2026-11-27 each pixel took its nearest band: a staircase whose brightness steps of about 10 %
+    # at the band edges no lens makes, and which no smooth model of the effect can follow.
+    band_t = np.clip((xn + 1) * 4, 0, 8)
+    band_lo = np.minimum(np.floor(band_t), 7).astype(np.int64)
+    band_w = band_t - band_lo  # the upper band's share of the pixel's light
     split_of = lambda bn: 1.2 * fvp * -(bn / 4 - 1)  # noqa: E731
     prof = planted.profile()
     size_front = 1 + 0.1 * planted.get("front_back_asymmetry")
@@ -279,9 +285,10 @@ def render_views(scene: ForeignScene, o: ForeignOptics, planted: Planted, sampli
         c = np.where(c < 0, c * size_front, c) * (1 + fvp * r2)
         img = scene.radiance[..., list(chans)] / 2
         lk = leak if leak.any() else None
-        bd = band if fvp else None
-        left[..., list(chans)] = scatter(img, c, lambda cn, bn: half_kernel(cn, prof, split_of(bn), sampling=sampling), lk, bd)
-        right[..., list(chans)] = scatter(img, c, lambda cn, bn: half_kernel(cn, prof, -split_of(bn), sampling=sampling)[:, ::-1], lk, bd)
+        shares = [(img * (1 - band_w[..., None]), band_lo), (img * band_w[..., None], band_lo + 1)] if fvp else [(img, None)]
+        for part, bd in shares:
+            left[..., list(chans)] += scatter(part, c, lambda cn, bn: half_kernel(cn, prof, split_of(bn), sampling=sampling), lk, bd)
+            right[..., list(chans)] += scatter(part, c, lambda cn, bn: half_kernel(cn, prof, -split_of(bn), sampling=sampling)[:, ::-1], lk, bd)
     g = planted.get("lr_gain_imbalance")
     if g:
         ramp = g * (1 + 0.5 * xn)[..., None]
