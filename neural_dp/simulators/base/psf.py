@@ -206,17 +206,16 @@ def _to_pixels(w: Tensor, n: int, ss: int, beta: float) -> Tensor:
 SA_PUPIL_SAMPLES_MAX = 384
 """Most pupil samples per side of the pushforward grid (:func:`_pushforward_kernel`)."""
 
-_PUPIL_GRIDS: dict[tuple[int, str], tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+_PUPIL_GRIDS: dict[tuple[int, str], tuple[Tensor, Tensor, Tensor]] = {}
 
 
-def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(u_x, u_y, rho^2, left) on an m x m grid of pupil sample centres over [-1, 1]^2 (cached); ``left`` is 1 on
-    the pupil half u_x < 0."""
+def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Tensor]:
+    """(u_x, u_y, rho^2) on an m x m grid of pupil sample centres over [-1, 1]^2 (cached)."""
     key = (m, str(device))
     if key not in _PUPIL_GRIDS:
         g = (torch.arange(m, device=device, dtype=torch.float32) + 0.5) / m * 2 - 1
         uy, ux = torch.meshgrid(g, g, indexing="ij")
-        _PUPIL_GRIDS[key] = (ux, uy, ux**2 + uy**2, (ux < 0).float())
+        _PUPIL_GRIDS[key] = (ux, uy, ux**2 + uy**2)
     return _PUPIL_GRIDS[key]
 
 
@@ -248,11 +247,10 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     n = 2 * half + 1
     ss = max(_fine_supersample(n), supersample | 1)
     m = int(min(SA_PUPIL_SAMPLES_MAX, max(32, math.ceil(2 * extent * ss * 1.5)))) & ~1  # even: none on u_x = 0
-    ux, uy, rho2, left = _pupil_grid(m, device)
+    ux, uy, rho2 = _pupil_grid(m, device)
     inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + uy**2 <= 1.0)
-    ux, uy, rho2, left = ux[inside], uy[inside], rho2[inside], left[inside]
-    if split_dx:
-        left = (ux < split_dx).float()
+    ux, uy, rho2 = ux[inside], uy[inside], rho2[inside]
+    left = (ux < split_dx).float()  # the left photodiode's part of the pupil
     w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0) * ((1.0 - split) / 2.0 + split * left)
     zone = c - a * (rho2 - 0.6)
     N = n * ss
