@@ -37,7 +37,9 @@ class DetectConfig:
             even screened.
         remaining_floor: an effect's size is a share of the systematic error the model without it leaves, but
             of at least this share of the base model's systematic error (what little several effects leave is
-            not a scale to measure a further one on).
+            not a scale to measure a further one on) or the nominal sensor's noise energy on the same pixels,
+            whichever is smaller (a remainder as large as a healthy sensor's noise is a scale real captures
+            have; :func:`dp5k_diagnose.selection.least_systematic`).
         noise_flat_window_px, noise_flat_quantile: the window over which sharp must be flat, and the
             flattest fraction of valid pixels used to measure noise.
         nominal_shot_var, nominal_read_sigma: the noise a healthy sensor is expected to show (linear

@@ -257,8 +257,8 @@ class DetSet:
         counts, owners: per kept tile (:func:`tiles.tile_mse`), its scored entries and pair id.
         floor: the systematic error is at least this share of a model's squared error
             (:attr:`DetectConfig.systematic_floor`).
-        base_systematic: the base model's systematic error times :attr:`DetectConfig.remaining_floor`: the
-            least a systematic error counts as.
+        base_systematic: the least a systematic error counts as (:func:`least_systematic` of the base
+            model's).
         noise: per kept tile, the measured white noise's squared error.
     """
 
@@ -296,6 +296,23 @@ class DetSet:
         """``effect``'s test: the model without it against the model with it (:func:`informed_test`)."""
         return informed_test(effect, without.su, with_.su, self.difference(without, with_), self.noise, self.counts, self.owners,
                              self.floor, self.base_systematic)
+
+
+def least_systematic(base_systematic: float, samples: Sequence[Sample], cfg: DetectConfig, tile: int | None = None) -> float:
+    r"""The least systematic error an effect's size is measured on, beside other effects (squared error summed
+    over ``samples``' scored pixels, linear units):
+    :math:`\min(\text{remaining\_floor} \cdot \mathrm{SSE}_{sys,base},\ \mathrm{SSE}_{noise,nominal})`.
+
+    What little the other effects leave is no scale to measure a further effect on (on noise-free data
+    rendered by the base model itself with an L/R gain planted, the gain model left 1e-3 of the base model's
+    error, and a bright rim fitted into that numerical remainder took half of it), but a remainder as large as
+    the noise a healthy sensor adds to these pixels (:attr:`DetectConfig.nominal_shot_var`,
+    :attr:`DetectConfig.nominal_read_sigma`, both views) is a scale every real capture has. Until 2026-11-28
+    the floor was the first term alone: beside a planted 1 px misregistration (another renderer, 26 dB of
+    gain) it was 26 x what the misregistration left, and a planted focus offset that removed 97 % of that
+    (p 0.01) measured 0.03 and was eliminated."""
+    noise = noise_sse(list(samples), cfg.nominal_shot_var, cfg.nominal_read_sigma, tile or cfg.tile_px)
+    return min(cfg.remaining_floor * base_systematic, noise)
 
 
 def informed_test(effect: str, without_su: np.ndarray, with_su: np.ndarray, diff: np.ndarray, noise: np.ndarray, counts: np.ndarray,
@@ -382,8 +399,8 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
     that adds most to those already taken, while it adds at least :attr:`SelectConfig.screen_share` of its
     threshold; and every effect whose unique part of the joint step of all effects is that large. Shares are
     of the fit crops' systematic error around ``model``, but of at least ``least`` (a re-screen passes
-    :attr:`DetectConfig.remaining_floor` times the base model's: what little the confirmed causes leave is not a
-    scale to measure a further one on, as in the tests)."""
+    :func:`least_systematic` of the base model's: what little the confirmed causes leave is not a scale to
+    measure a further one on, as in the tests)."""
     point = model.replaced(sorted([copy.deepcopy(c) for c in model.components] + [copy.deepcopy(c) for c in new.values()],
                                   key=lambda c: c.stage))
     targets = [(c, n) for c in point.components if c.name in new for n in fittable_names(c, fit)]
@@ -685,7 +702,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
     det = DetSet(det_samples, cfg.tile_px, base_co, owners, cfg.systematic_floor,
                  noise_tile_sse(det_samples, *measured_noise(noise0, cfg), cfg.tile_px, det_sharp))
     base_ev = det.eval(base)
-    det.base_systematic = cfg.remaining_floor * systematic_sse(base_total, det_samples, noise0, cfg, det_sharp)
+    det.base_systematic = least_systematic(systematic_sse(base_total, det_samples, noise0, cfg, det_sharp), det_samples, cfg)
     structural = [e for e in effects if e != "noise"]
     untestable: dict[str, Finding] = {}
     if any(COMPONENTS[e].needs_colour for e in structural):
@@ -722,7 +739,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         rest = {n: comps[n] for n in comps if n not in conf.names}
         if k == sel.rescreens or not rest:
             break
-        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp, cfg.remaining_floor * screen.systematic)
+        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp, least_systematic(screen.systematic, pool, cfg, 1))
         trace["rescreens"].append({"model": list(conf.names), **again.to_json()})
         for n in rest:
             screen.share[n] = max(screen.share.get(n, 0.0), again.share[n])
@@ -746,7 +763,7 @@ def remeasure_sharp_noise(det: DetSet, model: BaseModel, fit: list[Sample], nois
     d = SharpNoise(again.ratio, again.propagated[len(fit):])
     trace["sharp_noise_ratio"] = {"base": trace.get("sharp_noise_ratio", {}).get("base"), "full_model": again.ratio}
     det.noise = noise_tile_sse(det.samples, *measured_noise(noise0, cfg), cfg.tile_px, d)
-    det.base_systematic = cfg.remaining_floor * systematic_sse(base_total, det.samples, noise0, cfg, d)
+    det.base_systematic = least_systematic(systematic_sse(base_total, det.samples, noise0, cfg, d), det.samples, cfg)
 
 
 def finish(ctx: Context, conf: Confirmed, trace: dict[str, Any]) -> Selection:
