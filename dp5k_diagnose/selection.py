@@ -19,7 +19,8 @@ once and removes what the held-out pairs do not need:
    Wilcoxon's signed-rank test, Holm's step-down correction over S, and E's unique share of the systematic
    error must exceed its threshold. While any effect fails, the weakest (largest p) is removed.
 4. **Confirmation** with real refits: the survivors' model and the model without each one are refitted
-   (nonlinear) and tested again the same way; an effect that fails is removed and the rest re-confirmed.
+   (nonlinear) and tested again the same way; of the effects that fail, the one whose removal costs the
+   detection pairs least is removed and the rest re-confirmed.
    The models without each cause are what each cause's held-out gain given the others is measured against.
 5. **Look-alikes** (:func:`find_lookalikes`): each named cause C is swapped for every effect F whose
    Jacobian correlates with C's; when F, refitted in C's place, predicts the detection pairs as well as C
