@@ -488,3 +488,23 @@ def test_the_full_model_starts_no_worse_than_the_model_it_extends() -> None:
     m = full()
     assert start_full_model(m, nested, wrong, fit) == 0.0  # every fraction of a wrong-way step is worse
     assert m.component("misregistration").params["left_dx_px"] == 0.0 and sse(m) == pytest.approx(nested_sse)
+
+
+def test_a_partner_beside_a_strong_effect_is_measured_on_at_most_the_sensor_noise() -> None:
+    """The least systematic error an effect's size is a share of: 5 % of the base model's where that is
+    below a healthy sensor's noise energy on the same pixels (numerical remainders stay crumbs), that noise
+    energy where a strong effect makes 5 % of the base error larger (a partner is judged on a scale real
+    captures have)."""
+    from dp5k_diagnose.selection import least_systematic
+
+    sharp = scene(4)
+    left, right = noisy_views(sharp, 1.0, None, 5)
+    s = samples(sharp, left, right)
+    cfg = DetectConfig()
+    nominal = detect_noise.noise_sse(s, cfg.nominal_shot_var, cfg.nominal_read_sigma, cfg.tile_px)
+    assert nominal > 0
+    weak, strong = 0.5 * nominal / cfg.remaining_floor, 100.0 * nominal / cfg.remaining_floor
+    assert least_systematic(weak, s, cfg) == pytest.approx(cfg.remaining_floor * weak)
+    assert least_systematic(strong, s, cfg) == pytest.approx(nominal)
+    quieter = dataclasses.replace(cfg, nominal_shot_var=cfg.nominal_shot_var / 4, nominal_read_sigma=cfg.nominal_read_sigma / 2)
+    assert least_systematic(strong, s, quieter) == pytest.approx(nominal / 4, rel=1e-6)
