@@ -218,44 +218,66 @@ def tile_side_px(k: int) -> int:
     return max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX * k)
 
 
-def tile_occupancy(occupied: Tensor, side: int) -> Tensor:
-    """(ny, nx) bool: which ``side`` x ``side`` tiles of an (h, w) bool map hold a True (tiles from the top
-    left; the last row and column may be partial)."""
+def tile_shape_px(h: int, w: int, k: int) -> tuple[int, int]:
+    """(rows, cols) px of the tiles an (h, w) image is cut into to convolve it with a k-px kernel by FFT: as many
+    tiles per axis as :func:`tile_side_px` needs, each as small as covers the image evenly (a 100-px extent is
+    two 50-px tiles, a 30-px one a single 30-px tile, not 96 px padded with zeros: the FFT grid, tile + k - 1,
+    shrinks with it and the linear convolution is the same)."""
+    side = tile_side_px(k)
+    return -(-h // -(-h // side)), -(-w // -(-w // side))
+
+
+def _pair(side: int | tuple[int, int]) -> tuple[int, int]:
+    return (side, side) if isinstance(side, int) else side
+
+
+def tile_occupancy(occupied: Tensor, side: int | tuple[int, int]) -> Tensor:
+    """(ny, nx) bool: which ``side`` (square, or (rows, cols)) tiles of an (h, w) bool map hold a True (tiles
+    from the top left; the last row and column may be partial)."""
     h, w = occupied.shape
-    ny, nx = -(-h // side), -(-w // side)
-    return F.pad(occupied, (0, nx * side - w, 0, ny * side - h)).view(ny, side, nx, side).any(3).any(1)
+    sy, sx = _pair(side)
+    ny, nx = -(-h // sy), -(-w // sx)
+    return F.pad(occupied, (0, nx * sx - w, 0, ny * sy - h)).view(ny, sy, nx, sx).any(3).any(1)
 
 
-def occupied_tiles(x: Tensor, occupied: Tensor, side: int) -> tuple[Tensor, list[tuple[int, int]]]:
-    """Cut ``x`` (B, C, h, w) into ``side`` x ``side`` tiles (zero-padded at the bottom and right) and keep
-    those where ``occupied`` (h, w) bool holds a True.
+def occupied_tiles(x: Tensor, occupied: Tensor, side: int | tuple[int, int]) -> tuple[Tensor, list[tuple[int, int]]]:
+    """Cut ``x`` (B, C, h, w) into ``side`` (square, or (rows, cols)) tiles (zero-padded at the bottom and right)
+    and keep those where ``occupied`` (h, w) bool holds a True.
 
     Returns:
-        (n, B, C, side, side) tiles and their n (y, x) origins in ``x``, px.
+        (n, B, C, rows, cols) tiles and their n (y, x) origins in ``x``, px.
     """
     B, C, h, w = x.shape
-    ny, nx = -(-h // side), -(-w // side)
-    padded = F.pad(x, (0, nx * side - w, 0, ny * side - h))
-    tiles = padded.view(B, C, ny, side, nx, side).permute(2, 4, 0, 1, 3, 5)  # (ny, nx, B, C, side, side)
-    iy, ix = torch.nonzero(tile_occupancy(occupied, side), as_tuple=True)
-    return tiles[iy, ix], [(int(a) * side, int(b) * side) for a, b in zip(iy.tolist(), ix.tolist())]
+    sy, sx = _pair(side)
+    ny, nx = -(-h // sy), -(-w // sx)
+    padded = F.pad(x, (0, nx * sx - w, 0, ny * sy - h))
+    tiles = padded.view(B, C, ny, sy, nx, sx).permute(2, 4, 0, 1, 3, 5)  # (ny, nx, B, C, sy, sx)
+    iy, ix = torch.nonzero(tile_occupancy(occupied, (sy, sx)), as_tuple=True)
+    return tiles[iy, ix], [(int(a) * sy, int(b) * sx) for a, b in zip(iy.tolist(), ix.tolist())]
 
 
-def fft_convolve_full(x: Tensor, psfs: Tensor, grid: int) -> Tensor:
+def fft_grid(tile: tuple[int, int], k: int) -> tuple[int, int]:
+    """The FFT grid (rows, cols) for full convolutions of ``tile``-sized images with k-px kernels: each side at
+    least tile + k - 1, rounded up to a size the real FFT is fast at."""
+    return next_fast_len(tile[0] + k - 1, real=True), next_fast_len(tile[1] + k - 1, real=True)
+
+
+def fft_convolve_full(x: Tensor, psfs: Tensor, grid: int | tuple[int, int]) -> Tensor:
     """Full linear convolutions of (..., C, h, w) images with V PSFs (V, k, k) or (V, C, k, k) by FFT on a
-    ``grid`` x ``grid`` grid (``grid >= h + k - 1`` and ``w + k - 1``).
+    ``grid`` (square, or (rows, cols)) grid (at least h + k - 1 rows and w + k - 1 columns).
 
     Returns:
-        (..., V, C, grid, grid); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
+        (..., V, C, rows, cols); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
     """
     k = psfs.shape[-1]
-    X = torch.fft.rfft2(x, s=(grid, grid)).unsqueeze(-4)  # (..., 1, C, grid, grid // 2 + 1)
-    big = psfs.new_zeros(*psfs.shape[:-2], grid, grid).to(x.dtype)
+    gy, gx = _pair(grid)
+    X = torch.fft.rfft2(x, s=(gy, gx)).unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
+    big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(x.dtype)
     big[..., :k, :k] = psfs
     K = torch.fft.rfft2(big)
     if psfs.ndim == 3:
-        K = K.unsqueeze(-3)  # (V, 1, grid, grid // 2 + 1): the same PSF for every channel
-    return torch.fft.irfft2(X * K, s=(grid, grid))
+        K = K.unsqueeze(-3)  # (V, 1, gy, gx // 2 + 1): the same PSF for every channel
+    return torch.fft.irfft2(X * K, s=(gy, gx))
 
 
 def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None) -> None:
@@ -276,12 +298,12 @@ def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor
     if k <= DIRECT_MAX_PX:
         dest[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += convolve_full(x, psfs).to(dest.device)
         return
-    side = tile_side_px(k)
+    sy, sx = tile_shape_px(h, w, k)
     occ = occupied if occupied is not None else torch.ones(h, w, dtype=torch.bool, device=x.device)
-    tiles, origins = occupied_tiles(x, occ, side)
-    grid = next_fast_len(side + k - 1, real=True)
+    tiles, origins = occupied_tiles(x, occ, (sy, sx))
+    grid = fft_grid((sy, sx), k)
     for i in range(0, len(origins), TILES_PER_CHUNK):
         full = fft_convolve_full(tiles[i : i + TILES_PER_CHUNK], psfs, grid)
         for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
-            ny, nx = min(side + k - 1, h + k - 1 - ty), min(side + k - 1, w + k - 1 - tx)
+            ny, nx = min(sy + k - 1, h + k - 1 - ty), min(sx + k - 1, w + k - 1 - tx)
             dest[..., y0 + ty : y0 + ty + ny, x0 + tx : x0 + tx + nx] += f[..., :ny, :nx]

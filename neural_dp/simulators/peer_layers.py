@@ -31,7 +31,7 @@ from scipy.fft import next_fast_len
 from torch import Tensor
 
 from .. import kernels
-from ..kernels import add_full_convolution, tile_occupancy, tile_side_px
+from ..kernels import add_full_convolution, fft_grid, tile_occupancy, tile_shape_px
 
 PsfFn = Callable[[float], NDArray[np.float64]]
 """Maps a layer's signed CoC diameter (px) to its LEFT-view PSF (k x k, k odd, sum 1/2, convolution form)."""
@@ -137,10 +137,10 @@ def render_layered(sharp: Tensor, coc_px: Tensor, valid: Tensor, left_psf: PsfFn
         stack = torch.cat([sharp[..., box.y0 : box.y1, box.x0 : box.x1] * mask, mask], dim=1)  # (B, C + 1, h, w)
         y0, x0 = box.y0 + r - k // 2, box.x0 + r - k // 2  # where the full convolution of the box starts in acc
         occupied = mask.amax((0, 1)) > 0  # (h, w)
-        side = tile_side_px(k)
-        n_tiles = int(tile_occupancy(occupied, side).sum())
-        grid = next_fast_len(side + k - 1, real=True)
-        tiles_cost = TILE_FFT_CHANNELS * n_tiles * grid * grid
+        tile = tile_shape_px(h, w, k)
+        n_tiles = int(tile_occupancy(occupied, tile).sum())
+        gy, gx = fft_grid(tile, k)
+        tiles_cost = TILE_FFT_CHANNELS * n_tiles * gy * gx
         if k <= kernels.DIRECT_MAX_PX or tiles_cost < FRAME_FFT_COST_RATIO * FRAME_FFT_CHANNELS * Hp * Wp:
             add_full_convolution(acc, y0, x0, stack, torch.stack([psf, psf.flip(1)]), occupied)
             continue

@@ -92,3 +92,25 @@ def test_convolve_full_is_true_full_convolution(backend: str) -> None:
             for v in range(2):
                 ref = F.conv2d(F.pad(x, (6, 6, 6, 6)), w[v].flip(-1, -2)[:, None], groups=3)
                 torch.testing.assert_close(got[:, v], ref, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize(("h", "w"), [(100, 30), (23, 250), (97, 97)])
+def test_fft_tiles_fit_the_image_and_give_the_full_convolution(h: int, w: int) -> None:
+    """FFT tiles cover an extent evenly (as many as the kernel's tile side needs, no larger than the image) and
+    the tiled FFT convolution of an image with holes (unoccupied tiles skipped) is the full convolution."""
+    from neural_dp.kernels import add_full_convolution, tile_shape_px, tile_side_px
+
+    k = 21
+    side = tile_side_px(k)
+    sy, sx = tile_shape_px(h, w, k)
+    assert sy <= min(h, side) and sx <= min(w, side)
+    assert -(-h // sy) == -(-h // side) and -(-w // sx) == -(-w // side)  # no more tiles than the square side gives
+    torch.manual_seed(1)
+    x = torch.rand(2, 4, h, w, dtype=torch.float64)
+    x[..., : h // 2, : w // 2] = 0.0
+    occupied = x.abs().sum((0, 1)) > 0
+    psfs = torch.rand(2, k, k, dtype=torch.float64)
+    dest = torch.zeros(2, 2, 4, h + k - 1, w + k - 1, dtype=torch.float64)
+    add_full_convolution(dest, 0, 0, x, psfs, occupied)
+    ref = convolve_full(x, psfs, backend="torch")
+    torch.testing.assert_close(dest, ref, atol=1e-9, rtol=1e-9)
