@@ -722,6 +722,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
                              "full_models": [], "sharp_noise_ratio": {"base": sharp.ratio}}
     ctx = Context(base, base_ev, base_mse, fit, det, cfg, sel, comps, neutral, screen, base, {}, untestable, structural, "noise" in effects)
     conf = Confirmed([], base, None, base_ev, {}, {}, {})
+    kept_full = base
     names, values = list(screen.candidates), screen.values
     for k in range(sel.rescreens + 1):
         if not names:
@@ -738,8 +739,15 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         rounds += elim_rounds
         ctx.removed.update(removed)
         survivors = [c.name for c in survivor.components]
-        conf = confirm(base, base_ev, full, survivors, key_values(survivor, targets_of(survivor, fit)), fit, det, neutral, cfg, sel,
-                       ctx.removed, rounds)
+        new = confirm(base, base_ev, full, survivors, key_values(survivor, targets_of(survivor, fit)), fit, det, neutral, cfg, sel,
+                      ctx.removed, rounds)
+        if k > 0 and not predicts_better(new, conf):
+            trace["rescreens"][-1]["kept"] = {"model": list(conf.names), "detect_sse": float(conf.su.su.sum()),
+                                              "rejected": list(new.names), "rejected_detect_sse": float(new.su.su.sum())}
+            log.info("re-screen's model %s predicts the detection pairs no better than %s: kept", new.names, conf.names)
+            ctx.full = kept_full
+            break
+        conf, kept_full = new, full
         rest = {n: comps[n] for n in comps if n not in conf.names}
         if k == sel.rescreens or not rest:
             break
@@ -755,6 +763,18 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         ctx.removed.pop(n, None)
     trace["full_model"] = trace["full_models"][-1] if trace["full_models"] else {"components": {}}
     return finish(ctx, conf, trace)
+
+
+def predicts_better(new: Confirmed, old: Confirmed) -> bool:
+    """Whether a re-screen's confirmed model ``new`` predicts the detection pairs (which no fit saw) better than
+    the confirmed model ``old`` it was built to extend: a lower summed squared error over their kept tiles.
+
+    A re-screen adds the effects that pass around ``old`` and eliminates backward from the larger full model;
+    that elimination can lose confirmed causes to a look-alike that stands in for them (on ``foreign_dp``,
+    L/R gain + focus offset + front/back asymmetry confirmed exactly, then a five-effect full model ended as
+    the gain and a chromatic defocus whose R and B focal shifts mimicked the focus offset). Such a model is
+    kept only when the held-out pairs prefer it."""
+    return float(new.su.su.sum()) < float(old.su.su.sum())
 
 
 def remeasure_sharp_noise(det: DetSet, model: BaseModel, fit: list[Sample], noise0: Finding | None, base_total: float, cfg: DetectConfig,

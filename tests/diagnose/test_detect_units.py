@@ -508,3 +508,20 @@ def test_a_partner_beside_a_strong_effect_is_measured_on_at_most_the_sensor_nois
     assert least_systematic(strong, s, cfg) == pytest.approx(nominal)
     quieter = dataclasses.replace(cfg, nominal_shot_var=cfg.nominal_shot_var / 4, nominal_read_sigma=cfg.nominal_read_sigma / 2)
     assert least_systematic(strong, s, quieter) == pytest.approx(nominal / 4, rel=1e-6)
+
+
+def test_a_re_screen_model_is_kept_only_when_the_detection_pairs_prefer_it() -> None:
+    """A re-screen's confirmed model replaces the confirmed model it extends only when it predicts the
+    detection pairs better (lower summed squared error over their tiles): a larger full model once lost two
+    confirmed causes to a look-alike and ended worse."""
+    from dp5k_diagnose.selection import Confirmed, Eval, predicts_better
+
+    def confirmed(names: list[str], tile_sse: list[float]) -> Confirmed:
+        return Confirmed(names, BaseModel(), None, Eval(np.array(tile_sse), []), {}, {}, {})
+
+    exact = confirmed(["lr_gain_imbalance", "focus_offset", "front_back_asymmetry"], [1.0, 2.0, 1.5])
+    stand_in = confirmed(["lr_gain_imbalance", "chromatic_defocus"], [1.2, 2.1, 1.5])
+    better = confirmed(["lr_gain_imbalance", "focus_offset", "front_back_asymmetry", "psf_profile"], [0.9, 1.9, 1.5])
+    assert not predicts_better(stand_in, exact)
+    assert predicts_better(better, exact)
+    assert not predicts_better(exact, exact)  # a tie keeps what was confirmed
