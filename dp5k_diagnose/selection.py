@@ -22,6 +22,9 @@ once and removes what the held-out pairs do not need:
    (nonlinear) and tested again the same way; of the effects that fail, the one whose removal costs the
    detection pairs least is removed and the rest re-confirmed.
    The models without each cause are what each cause's held-out gain given the others is measured against.
+   A **re-screen** around the confirmed model proposes the effects it masked; the larger full model they make
+   is eliminated and confirmed in turn, and replaces the confirmed model only when the detection pairs prefer
+   it (:func:`predicts_better`).
 5. **Look-alikes** (:func:`find_lookalikes`): each named cause C is swapped for every effect F whose
    Jacobian correlates with C's; when F, refitted in C's place, predicts the detection pairs as well as C
    (not significantly and materially worse) while explaining what C explained, the two are reported

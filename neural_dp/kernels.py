@@ -48,8 +48,8 @@ TILE_MIN_PX = 96
 """Smallest side of the tiles a layer is cut into for FFT convolution (px)."""
 
 TILE_SIDE_PER_KERNEL_PX = 2
-"""A layer convolved with a k-px kernel is cut into tiles of side ``max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX
-* k)``, so a tile's FFT grid (side + k - 1) stays within about 1.5 x its side."""
+"""A layer convolved with a k-px kernel is cut into tiles of at most ``max(TILE_MIN_PX, TILE_SIDE_PER_KERNEL_PX
+* k)`` px a side (:func:`tile_shape_px`), so a tile's FFT grid (side + k - 1) stays within about 1.5 x its side."""
 
 TILES_PER_CHUNK = 16
 """Tiles transformed at once (bounds the memory of the batched FFTs)."""
