@@ -227,32 +227,28 @@ def tile_shape_px(h: int, w: int, k: int) -> tuple[int, int]:
     return -(-h // -(-h // side)), -(-w // -(-w // side))
 
 
-def _pair(side: int | tuple[int, int]) -> tuple[int, int]:
-    return (side, side) if isinstance(side, int) else side
-
-
-def tile_occupancy(occupied: Tensor, side: int | tuple[int, int]) -> Tensor:
-    """(ny, nx) bool: which ``side`` (square, or (rows, cols)) tiles of an (h, w) bool map hold a True (tiles
-    from the top left; the last row and column may be partial)."""
+def tile_occupancy(occupied: Tensor, tile: tuple[int, int]) -> Tensor:
+    """(ny, nx) bool: which ``tile`` (rows, cols) tiles of an (h, w) bool map hold a True (tiles from the top
+    left; the last row and column may be partial)."""
     h, w = occupied.shape
-    sy, sx = _pair(side)
+    sy, sx = tile
     ny, nx = -(-h // sy), -(-w // sx)
     return F.pad(occupied, (0, nx * sx - w, 0, ny * sy - h)).view(ny, sy, nx, sx).any(3).any(1)
 
 
-def occupied_tiles(x: Tensor, occupied: Tensor, side: int | tuple[int, int]) -> tuple[Tensor, list[tuple[int, int]]]:
-    """Cut ``x`` (B, C, h, w) into ``side`` (square, or (rows, cols)) tiles (zero-padded at the bottom and right)
-    and keep those where ``occupied`` (h, w) bool holds a True.
+def occupied_tiles(x: Tensor, occupied: Tensor, tile: tuple[int, int]) -> tuple[Tensor, list[tuple[int, int]]]:
+    """Cut ``x`` (B, C, h, w) into ``tile`` (rows, cols) tiles (zero-padded at the bottom and right) and keep
+    those where ``occupied`` (h, w) bool holds a True.
 
     Returns:
         (n, B, C, rows, cols) tiles and their n (y, x) origins in ``x``, px.
     """
     B, C, h, w = x.shape
-    sy, sx = _pair(side)
+    sy, sx = tile
     ny, nx = -(-h // sy), -(-w // sx)
     padded = F.pad(x, (0, nx * sx - w, 0, ny * sy - h))
     tiles = padded.view(B, C, ny, sy, nx, sx).permute(2, 4, 0, 1, 3, 5)  # (ny, nx, B, C, sy, sx)
-    iy, ix = torch.nonzero(tile_occupancy(occupied, (sy, sx)), as_tuple=True)
+    iy, ix = torch.nonzero(tile_occupancy(occupied, tile), as_tuple=True)
     return tiles[iy, ix], [(int(a) * sy, int(b) * sx) for a, b in zip(iy.tolist(), ix.tolist())]
 
 
@@ -262,15 +258,15 @@ def fft_grid(tile: tuple[int, int], k: int) -> tuple[int, int]:
     return next_fast_len(tile[0] + k - 1, real=True), next_fast_len(tile[1] + k - 1, real=True)
 
 
-def fft_convolve_full(x: Tensor, psfs: Tensor, grid: int | tuple[int, int]) -> Tensor:
+def fft_convolve_full(x: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
     """Full linear convolutions of (..., C, h, w) images with V PSFs (V, k, k) or (V, C, k, k) by FFT on a
-    ``grid`` (square, or (rows, cols)) grid (at least h + k - 1 rows and w + k - 1 columns).
+    ``grid`` (rows, cols) grid (at least h + k - 1 rows and w + k - 1 columns).
 
     Returns:
         (..., V, C, rows, cols); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
     """
     k = psfs.shape[-1]
-    gy, gx = _pair(grid)
+    gy, gx = grid
     X = torch.fft.rfft2(x, s=(gy, gx)).unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
     big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(x.dtype)
     big[..., :k, :k] = psfs
@@ -298,10 +294,10 @@ def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor
     if k <= DIRECT_MAX_PX:
         dest[..., y0 : y0 + h + k - 1, x0 : x0 + w + k - 1] += convolve_full(x, psfs).to(dest.device)
         return
-    sy, sx = tile_shape_px(h, w, k)
+    tile = sy, sx = tile_shape_px(h, w, k)
     occ = occupied if occupied is not None else torch.ones(h, w, dtype=torch.bool, device=x.device)
-    tiles, origins = occupied_tiles(x, occ, (sy, sx))
-    grid = fft_grid((sy, sx), k)
+    tiles, origins = occupied_tiles(x, occ, tile)
+    grid = fft_grid(tile, k)
     for i in range(0, len(origins), TILES_PER_CHUNK):
         full = fft_convolve_full(tiles[i : i + TILES_PER_CHUNK], psfs, grid)
         for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
