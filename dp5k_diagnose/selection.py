@@ -725,7 +725,6 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
                              "full_models": [], "sharp_noise_ratio": {"base": sharp.ratio}}
     ctx = Context(base, base_ev, base_mse, fit, det, cfg, sel, comps, neutral, screen, base, {}, untestable, structural, "noise" in effects)
     conf = Confirmed([], base, None, base_ev, {}, {}, {})
-    kept_full = base
     names, values = list(screen.candidates), screen.values
     for k in range(sel.rescreens + 1):
         if not names:
@@ -737,7 +736,6 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         trace["full_models"].append({**full.describe(), "start_step": t})
         if k == 0:  # the sharp frame's noise again, against a model that explains the planted effects
             remeasure_sharp_noise(det, full, fit, noise0, base_total, cfg, trace)
-        ctx.full = full
         survivor, elim_rounds, removed = eliminate(full, lin, fit, det, neutral, cfg, sel)
         rounds += elim_rounds
         ctx.removed.update(removed)
@@ -748,9 +746,8 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
             trace["rescreens"][-1]["kept"] = {"model": list(conf.names), "detect_sse": float(conf.su.su.sum()),
                                               "rejected": list(new.names), "rejected_detect_sse": float(new.su.su.sum())}
             log.info("re-screen's model %s predicts the detection pairs no better than %s: kept", new.names, conf.names)
-            ctx.full = kept_full
             break
-        conf, kept_full = new, full
+        conf, ctx.full = new, full  # the full model the kept causes came from
         rest = {n: comps[n] for n in comps if n not in conf.names}
         if k == sel.rescreens or not rest:
             break
