@@ -44,8 +44,8 @@ class Finding:
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
     """95 % intervals of parameters, by name (the noise model's: bootstrap over pairs)."""
     stage: str = ""
-    """Where the selection left the effect: "named", "eliminated", "screened out", "not testable" or
-    "measured" (``noise``)."""
+    """Where the selection left the effect: "named", "eliminated", "suspect", "look-alike" (a look-alike of
+    fewer parameters is named in its place), "screened out", "not testable" or "measured" (``noise``)."""
     testable: bool = True
     """False when the data cannot show the effect at all (a colour effect on data with R = G = B); such a
     finding is never detected."""

@@ -693,6 +693,9 @@ class Context:
     with_noise: bool
     suspects: set[str] = field(default_factory=set)
     """Causes dropped because their held-out gain did not earn them (:func:`drop_cause`)."""
+    simpler_lookalike: dict[str, tuple[str, dict[str, float], int, int]] = field(default_factory=dict)
+    """Causes confirmed first and then not named: per cause, the look-alike of fewer parameters named in its
+    place, the cause's fitted parameters, and both parameter counts (:func:`name_the_simpler`)."""
 
 
 def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample], cfg: DetectConfig, sel: SelectConfig,
@@ -793,15 +796,71 @@ def remeasure_sharp_noise(det: DetSet, model: BaseModel, fit: list[Sample], nois
 def finish(ctx: Context, conf: Confirmed, trace: dict[str, Any]) -> Selection:
     """Order the confirmed causes, find their look-alikes, build the step models, measure noise against the
     final model and write every effect's finding."""
+    lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel) if conf.names else []
+    for _ in range(len(conf.names)):  # each swap names fewer parameters, so this ends
+        swapped = name_the_simpler(ctx, conf, lookalikes, trace)
+        if swapped is None:
+            break
+        conf = swapped
+        lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel)
     order = sorted(conf.names, key=lambda n: -conf.tests[n].effect_size)
-    lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel) if order else []
     steps = step_models(conf, order, ctx.neutral) if order else []
     noise = test_noise(conf.model, ctx.fit, ctx.det.samples, ctx.cfg, ctx.base_mse) if ctx.with_noise else None
     findings = effect_findings(conf, order, ctx.full, ctx.screen, ctx.removed, ctx.untestable, noise, ctx.fit, ctx.cfg, ctx.sel, ctx.structural,
-                               ctx.suspects)
+                               ctx.suspects, ctx.simpler_lookalike)
     out = Selection(order, conf.model, steps, [conf.without[n] for n in order], findings, lookalikes, trace, noise, conf.lin)
     out.context = ctx
     return out
+
+
+def parameter_count(comp: object, fit: Sequence[Sample]) -> int:
+    """How many parameters of ``comp`` the fit crops constrain (:func:`fittable_names`): what a model holding it
+    fits."""
+    return len(fittable_names(comp, fit))
+
+
+def name_the_simpler(ctx: Context, conf: Confirmed, lookalikes: list[dict[str, Any]], trace: dict[str, Any]) -> Confirmed | None:
+    """Parsimony between look-alikes: where a named cause C has an ``instead`` look-alike F (the detection pairs
+    do not prefer C materially, and F explains what C explained, :func:`find_lookalikes`) that fits fewer
+    parameters on this data (:func:`parameter_count`), F is named in C's place, and C is reported as its
+    look-alike. The model with F is refitted and confirmed like any other (:func:`confirm`); the swap stands
+    only when every cause of it passes its test given the others. Returns the new confirmed model, or None
+    when no swap stands.
+
+    Two models that predict held-out data equally well are told apart by their complexity alone: on another
+    renderer's bright-rim disc beside a focus offset, a misregistration or chromatic defocus, the first model
+    confirmed was front_back_asymmetry (4 parameters: a back rim, a front centre, a front size, spherical
+    aberration), whose back rim matched the planted rim as well as psf_profile (2 parameters) did."""
+    for group in lookalikes:
+        c = group["names"][0]
+        n_c = parameter_count(conf.model.component(c), ctx.fit)
+        simpler = [(parameter_count(ctx.comps[f], ctx.fit), lost if lost is not None else 0.0, f)
+                   for f, kind, lost in zip(group["names"][1:], group["kinds"], group["effect_size_lost"]) if kind == "instead"]
+        simpler = sorted(t for t in simpler if t[0] < n_c)
+        if not simpler:
+            continue
+        n_f, _, f = simpler[0]
+        others = [m for m in conf.names if m != c]
+        swap = submodel(conf.without[c], others).with_component(copy.deepcopy(ctx.comps[f]))
+        for (k, n), v in ctx.screen.values.items():
+            if k == f:
+                swap.component(f).params[n] = v
+        refit(swap, ctx.fit, ctx.sel.full_lm_iters)
+        names = others + [f]
+        removed = dict(ctx.removed)
+        new = confirm(ctx.base, ctx.base_ev, swap, names, key_values(swap, targets_of(swap, ctx.fit)), ctx.fit, ctx.det, ctx.neutral,
+                      ctx.cfg, ctx.sel, removed, trace.setdefault("rounds", []))
+        record = {"named": c, "parameters": n_c, "simpler": f, "simpler_parameters": n_f, "confirmed": list(new.names)}
+        trace.setdefault("parsimony", []).append(record)
+        if sorted(new.names) != sorted(names):
+            log.info("parsimony: %s (%d parameters) for %s (%d) did not confirm: %s", f, n_f, c, n_c, new.names)
+            continue
+        log.info("parsimony: %s (%d parameters) named in place of its look-alike %s (%d)", f, n_f, c, n_c)
+        ctx.removed.update(removed)
+        ctx.removed[c] = conf.tests[c]
+        ctx.simpler_lookalike[c] = (f, conf.model.component(c).describe(), n_c, n_f)
+        return new
+    return None
 
 
 def drop_cause(selection: Selection, name: str) -> Selection:
@@ -833,8 +892,11 @@ def step_models(conf: Confirmed, order: list[str], neutral: dict[str, dict[str, 
 
 def effect_findings(conf: Confirmed, order: list[str], full: BaseModel, screen: Screen, removed: dict[str, Test],
                     untestable: dict[str, Finding], noise: Finding | None, fit: Sequence[Sample], cfg: DetectConfig, sel: SelectConfig,
-                    structural: list[str], suspects: set[str] = frozenset()) -> list[Finding]:
-    """One finding per effect (named first, in order; then the others by effect size)."""
+                    structural: list[str], suspects: set[str] = frozenset(),
+                    simpler: dict[str, tuple[str, dict[str, float], int, int]] | None = None) -> list[Finding]:
+    """One finding per effect (named first, in order; then the others by effect size). ``simpler``: the causes
+    a look-alike of fewer parameters was named in place of (:attr:`Context.simpler_lookalike`)."""
+    simpler = simpler or {}
     out: list[Finding] = []
     for n in order:
         t, comp = conf.tests[n], conf.model.component(n)
@@ -848,6 +910,12 @@ def effect_findings(conf: Confirmed, order: list[str], full: BaseModel, screen: 
             continue
         if n in untestable:
             rest.append(untestable[n])
+            continue
+        if n in simpler and n in removed:
+            t, (f, params, n_n, n_f) = removed[n], simpler[n]
+            why = (f"; not named: a look-alike of {f}, which the detection pairs do not tell from it and which fits fewer parameters "
+                   f"({n_f} against {n_n}); {f} is named in its place")
+            rest.append(Finding(n, t.statistic, t.p_value, t.effect_size, False, params, explanation(n, params) + why, None, stage="look-alike"))
             continue
         if n in removed:
             t = removed[n]
