@@ -160,7 +160,7 @@ def causes_lines(result: dict[str, Any]) -> list[str]:
     lines = ["## Causes, in order", "",
              "Each cause was tested given every other cause (effect size: the share of the base model's systematic error "
              "that removing it from the final model gives back on the detection pairs, the others refitted; p: "
-             "signed-rank test over pairs, Holm-corrected over the causes). A cause is named only when its held-out gain "
+             "signed-rank test over pairs, Hochberg-corrected over the causes). A cause is named only when its held-out gain "
              "given the others has a 95 % CI above 0; otherwise it is a suspect. Held-out PSNR gains, 95 % bootstrap CI "
              "over the 32 px tiles within each held-out pair (what these captures show beyond their noise; in brackets "
              "after *pairs*, the CI over pairs: how the gain varies from capture to capture): *given the others* is what the cause adds to a model holding every other cause (the final model "

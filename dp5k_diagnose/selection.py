@@ -16,7 +16,7 @@ once and removes what the held-out pairs do not need:
 3. **Backward elimination** on the detection pairs, which no fit saw. For each effect E of the current set
    S, the model without E (the others refitted, to first order, from the full model's Jacobian) is compared
    with S pair by pair: :math:`\Delta_i = \ln(\mathrm{SSE}_i(S \setminus E) / \mathrm{SSE}_i(S))`,
-   Wilcoxon's signed-rank test, Holm's step-down correction over S, and E's unique share of the systematic
+   Wilcoxon's signed-rank test, Hochberg's step-up correction over S, and E's unique share of the systematic
    error must exceed its threshold. While any effect fails, the weakest (largest p) is removed.
 4. **Confirmation** with real refits: the survivors' model and the model without each one are refitted
    (nonlinear) and tested again the same way; of the effects that fail, the one whose removal costs the
@@ -56,7 +56,7 @@ from .data import Sample
 from .findings import GREY_MAX_COLOUR_CONTRAST, Finding, _finite, colour_contrast, explanation, not_testable
 from .fitting import PSF_NUISANCE, covered_field_box
 from .noise import SharpNoise, measured_noise, noise_sse, noise_tile_sse, sharp_noise, systematic_sse, test_noise
-from .tiles import clustered_delta, effect_test, holm_passed, kept_tiles, tile_mse, tile_sums, unit_sums
+from .tiles import clustered_delta, effect_test, hochberg_passed, kept_tiles, tile_mse, tile_sums, unit_sums
 
 log = logging.getLogger(__name__)
 
@@ -344,9 +344,9 @@ def informed_test(effect: str, without_su: np.ndarray, with_su: np.ndarray, diff
 
 
 def judge(tests: list[Test], cfg: DetectConfig) -> None:
-    """Set each test's ``passed``: Holm's step-down correction at ``cfg.alpha`` over the tests, and a unique
-    share above the effect's threshold."""
-    ok = holm_passed([t.p_value for t in tests], cfg.alpha)
+    """Set each test's ``passed``: Hochberg's step-up correction at ``cfg.alpha`` over the tests
+    (:func:`tiles.hochberg_passed`), and a unique share above the effect's threshold."""
+    ok = hochberg_passed([t.p_value for t in tests], cfg.alpha)
     for t, h in zip(tests, ok):
         t.passed = bool(h and t.effect_size > cfg.threshold(t.effect))
 

@@ -1,6 +1,6 @@
 """Unit checks of the detectors' building blocks: the noise measurement, the predictable-pixel mask, the tile
 statistics and the linear algebra the selection of causes stands on (bounded Gauss-Newton refits, canonical
-correlations of look-alikes, Holm's correction, informative pairs)."""
+correlations of look-alikes, Hochberg's correction, informative pairs)."""
 
 from __future__ import annotations
 
@@ -126,12 +126,16 @@ def test_canonical_correlation_tells_look_alikes_from_independent_effects() -> N
     assert canonical_corr(A2, [0], [1], []) > 0.8 and canonical_corr(A2, [0], [1], [2]) < 0.15
 
 
-def test_holm_step_down_keeps_the_family_wise_level() -> None:
-    assert tiles.holm_passed([0.001, 0.02, 0.04], 0.05) == [True, True, True]  # 0.001<0.0167, 0.02<0.025, 0.04<0.05
-    assert tiles.holm_passed([0.001, 0.03, 0.04], 0.05) == [True, False, False]  # 0.03 >= 0.025 stops the steps
-    assert tiles.holm_passed([0.04, 0.001], 0.05) == [True, True]
-    rng = np.random.default_rng(2)  # under the null, any pass among 8 tests happens at most alpha of the time
-    rate = np.mean([any(tiles.holm_passed(list(rng.uniform(size=8)), 0.05)) for _ in range(2000)])
+def test_hochberg_step_up_keeps_the_family_wise_level() -> None:
+    assert tiles.hochberg_passed([0.001, 0.02, 0.04], 0.05) == [True, True, True]  # 0.04 < 0.05: all pass
+    assert tiles.hochberg_passed([0.001, 0.03, 0.04], 0.05) == [True, True, True]  # Holm stopped at 0.03 >= 0.025
+    assert tiles.hochberg_passed([0.001, 0.03, 0.06], 0.05) == [True, False, False]  # 0.06 > 0.05, 0.03 > 0.025, 0.001 < 0.0167
+    assert tiles.hochberg_passed([0.027, 0.042], 0.05) == [True, True]  # foreign_dp chromatic defocus + focus offset
+    assert tiles.hochberg_passed([0.04, 0.001], 0.05) == [True, True]  # the largest is below alpha: both pass
+    assert tiles.hochberg_passed([0.06, 0.02], 0.05) == [False, True]  # 0.06 > 0.05, 0.02 < 0.025
+    assert tiles.hochberg_passed([], 0.05) == []
+    rng = np.random.default_rng(2)  # under the null (independent tests), any pass among 8 happens at most alpha of the time
+    rate = np.mean([any(tiles.hochberg_passed(list(rng.uniform(size=8)), 0.05)) for _ in range(2000)])
     assert rate < 0.065
 
 
