@@ -29,7 +29,8 @@ once and removes what the held-out pairs do not need:
    Jacobian correlates with C's; when F, refitted in C's place, predicts the detection pairs as well as C
    (not significantly and materially worse) while explaining what C explained, the two are reported
    together as indistinguishable on this data, with the capture that would separate them
-   (:data:`SEPARATING_CAPTURE`).
+   (:data:`SEPARATING_CAPTURE`). Of two such, the one with fewer parameters is named
+   (:func:`name_the_simpler`).
 
 ``noise`` is a measurement, not a structural effect (a simulator's output is an expectation): it is measured
 against the final model and named after the structural causes when its excess is significant.
@@ -612,8 +613,20 @@ def confirm(base: BaseModel, base_ev: Eval, full: BaseModel, names: list[str], v
 # -- 5. look-alikes ---------------------------------------------------------------------------------------------
 
 
+def swapped_model(conf: Confirmed, cause: str, effect: object, screen: Screen, fit: Sequence[Sample], sel: SelectConfig) -> BaseModel:
+    """The confirmed model with ``effect`` (a neutral component) in place of ``cause``: the model without the
+    cause, plus the effect started at the screen's joint step and refitted with every parameter as long as a
+    full model (as converged as the model it stands in for)."""
+    swap = submodel(conf.without[cause], [m for m in conf.names if m != cause]).with_component(copy.deepcopy(effect))
+    for (k, n), v in screen.values.items():
+        if k == effect.name:  # type: ignore[attr-defined]
+            swap.component(k).params[n] = v
+    refit(swap, fit, sel.full_lm_iters)
+    return swap
+
+
 def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, fit: Sequence[Sample], det: DetSet,
-                    cfg: DetectConfig, sel: SelectConfig) -> list[dict[str, Any]]:
+                    cfg: DetectConfig, sel: SelectConfig, swaps: dict[tuple[str, str], BaseModel] | None = None) -> list[dict[str, Any]]:
     """For each named cause C and each other testable effect F correlated with it (:attr:`Screen.corr`), F
     refitted in C's place: a look-alike when it explains what C explained (against the model without C it
     passes C's test: significant, and above C's threshold) and the detection pairs do not prefer C
@@ -627,17 +640,17 @@ def find_lookalikes(conf: Confirmed, comps: dict[str, object], screen: Screen, f
     its unique part is below the screen's bar (:attr:`Screen.alone`, :attr:`Screen.unique`). The data then
     cannot tell whether F is present beside C: a field-varying PSF's split leaking toward the edges planted
     with an L/R gain ramp (another renderer, 2026-11-27) was all explained by the ramp's gain map, its unique
-    part 0.002 of the systematic error against 0.685 alone, at a correlation of 0.998."""
+    part 0.002 of the systematic error against 0.685 alone, at a correlation of 0.998.
+
+    ``swaps``, when given, receives every refitted model tried, by (cause, effect)."""
     groups = []
     for c in conf.names:
         group = {"names": [c], "captures": [], "correlation": [], "effect_size_lost": [], "p_value": [], "kinds": []}
         others = [f for f in comps if f not in conf.names and screen.correlation(c, f) >= sel.lookalike_corr]
         for f in sorted(others, key=lambda f: -screen.correlation(c, f))[: sel.lookalike_tries]:
-            swap = submodel(conf.without[c], [m for m in conf.names if m != c]).with_component(copy.deepcopy(comps[f]))
-            start = {k: v for k, v in screen.values.items() if k[0] == f}
-            for (k, n), v in start.items():
-                swap.component(f).params[n] = v
-            refit(swap, fit, sel.full_lm_iters)  # as converged as the model it stands in for
+            swap = swapped_model(conf, c, comps[f], screen, fit, sel)
+            if swaps is not None:
+                swaps[(c, f)] = swap
             su = det.eval(swap)
             explains = det.test(f, conf.without_su[c], su)
             worse = det.test(c, su, conf.su)
@@ -796,13 +809,14 @@ def remeasure_sharp_noise(det: DetSet, model: BaseModel, fit: list[Sample], nois
 def finish(ctx: Context, conf: Confirmed, trace: dict[str, Any]) -> Selection:
     """Order the confirmed causes, find their look-alikes, build the step models, measure noise against the
     final model and write every effect's finding."""
-    lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel) if conf.names else []
+    swaps: dict[tuple[str, str], BaseModel] = {}
+    lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel, swaps) if conf.names else []
     for _ in range(len(conf.names)):  # each swap names fewer parameters, so this ends
-        swapped = name_the_simpler(ctx, conf, lookalikes, trace)
+        swapped = name_the_simpler(ctx, conf, lookalikes, swaps, trace)
         if swapped is None:
             break
-        conf = swapped
-        lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel)
+        conf, swaps = swapped, {}
+        lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel, swaps)
     order = sorted(conf.names, key=lambda n: -conf.tests[n].effect_size)
     steps = step_models(conf, order, ctx.neutral) if order else []
     noise = test_noise(conf.model, ctx.fit, ctx.det.samples, ctx.cfg, ctx.base_mse) if ctx.with_noise else None
@@ -819,13 +833,14 @@ def parameter_count(comp: object, fit: Sequence[Sample]) -> int:
     return len(fittable_names(comp, fit))
 
 
-def name_the_simpler(ctx: Context, conf: Confirmed, lookalikes: list[dict[str, Any]], trace: dict[str, Any]) -> Confirmed | None:
+def name_the_simpler(ctx: Context, conf: Confirmed, lookalikes: list[dict[str, Any]], swaps: dict[tuple[str, str], BaseModel],
+                     trace: dict[str, Any]) -> Confirmed | None:
     """Parsimony between look-alikes: where a named cause C has an ``instead`` look-alike F (the detection pairs
     do not prefer C materially, and F explains what C explained, :func:`find_lookalikes`) that fits fewer
     parameters on this data (:func:`parameter_count`), F is named in C's place, and C is reported as its
-    look-alike. The model with F is refitted and confirmed like any other (:func:`confirm`); the swap stands
-    only when every cause of it passes its test given the others. Returns the new confirmed model, or None
-    when no swap stands.
+    look-alike. The model with F (``swaps``: the refitted models :func:`find_lookalikes` tried) is confirmed
+    like any other (:func:`confirm`); the swap stands only when every cause of it passes its test given the
+    others. Returns the new confirmed model, or None when no swap stands.
 
     Two models that predict held-out data equally well are told apart by their complexity alone: on another
     renderer's bright-rim disc beside a focus offset, a misregistration or chromatic defocus, the first model
@@ -840,13 +855,8 @@ def name_the_simpler(ctx: Context, conf: Confirmed, lookalikes: list[dict[str, A
         if not simpler:
             continue
         n_f, _, f = simpler[0]
-        others = [m for m in conf.names if m != c]
-        swap = submodel(conf.without[c], others).with_component(copy.deepcopy(ctx.comps[f]))
-        for (k, n), v in ctx.screen.values.items():
-            if k == f:
-                swap.component(f).params[n] = v
-        refit(swap, ctx.fit, ctx.sel.full_lm_iters)
-        names = others + [f]
+        swap = swaps[(c, f)]
+        names = [m for m in conf.names if m != c] + [f]
         removed = dict(ctx.removed)
         new = confirm(ctx.base, ctx.base_ev, swap, names, key_values(swap, targets_of(swap, ctx.fit)), ctx.fit, ctx.det, ctx.neutral,
                       ctx.cfg, ctx.sel, removed, trace.setdefault("rounds", []))
