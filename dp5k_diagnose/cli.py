@@ -105,7 +105,8 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
             if kind == "also":
                 click.echo(f"look-alike: {g['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
             else:
-                click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data; to tell them apart, capture {capture})")
+                why = f"; {g['names'][0]} is named: it fits fewer parameters" if other in (g.get("fewer_parameters_than") or []) else ""
+                click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data{why}; to tell them apart, capture {capture})")
     for sp in res.get("suspects") or []:
         click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
                    f"(95% CI over held-out tiles [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")

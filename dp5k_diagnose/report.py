@@ -145,9 +145,10 @@ def suspects_lines(result: dict[str, Any]) -> list[str]:
                           f"beyond what `{first}` explains (first-order correlation of their effects {cc:.2f}): this data cannot tell "
                           f"whether `{o}` is present too. To tell, capture {cap}.", ""]
                 continue
+            simpler = f" `{first}` is named: it fits fewer parameters." if o in (g.get("fewer_parameters_than") or []) else ""
             lines.append(f"**`{first}` or `{o}`: indistinguishable on this data.** Refitted in `{first}`'s place, `{o}` explains what it "
                          f"explained and predicts the detection pairs as well (loses {lost:+.3f} of the systematic error; first-order "
-                         f"correlation of their effects {cc:.2f}). To tell them apart, capture {cap}.")
+                         f"correlation of their effects {cc:.2f}).{simpler} To tell them apart, capture {cap}.")
             lines.append("")
     for sp in result.get("suspects") or []:
         lo, hi = sp["gain_ci_db"]

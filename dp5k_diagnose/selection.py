@@ -817,6 +817,8 @@ def finish(ctx: Context, conf: Confirmed, trace: dict[str, Any]) -> Selection:
             break
         conf, swaps = swapped, {}
         lookalikes = find_lookalikes(conf, ctx.comps, ctx.screen, ctx.fit, ctx.det, ctx.cfg, ctx.sel, swaps)
+    for g in lookalikes:  # why the named one of each group was named: parsimony, where it chose
+        g["fewer_parameters_than"] = [c for c in g["names"][1:] if ctx.simpler_lookalike.get(c, ("",))[0] == g["names"][0]]
     order = sorted(conf.names, key=lambda n: -conf.tests[n].effect_size)
     steps = step_models(conf, order, ctx.neutral) if order else []
     noise = test_noise(conf.model, ctx.fit, ctx.det.samples, ctx.cfg, ctx.base_mse) if ctx.with_noise else None

@@ -529,3 +529,17 @@ def test_a_re_screen_model_is_kept_only_when_the_detection_pairs_prefer_it() -> 
     assert not predicts_better(stand_in, exact)
     assert predicts_better(better, exact)
     assert not predicts_better(exact, exact)  # a tie keeps what was confirmed
+
+
+def test_report_md_says_why_the_simpler_look_alike_is_named() -> None:
+    """report.md's look-alike line says the named cause was chosen for its fewer parameters only where the
+    selection did so (``fewer_parameters_than``), and not for a look-alike the data merely cannot tell apart."""
+    from dp5k_diagnose.report import suspects_lines
+
+    group = {"names": ["psf_profile", "front_back_asymmetry", "focus_offset"], "captures": ["a slanted plane", "a focus bracket"],
+             "correlation": [1.0, 0.95], "effect_size_lost": [0.015, 0.02], "p_value": [1.0, 0.5], "kinds": ["instead", "instead"],
+             "fewer_parameters_than": ["front_back_asymmetry"]}
+    lines = [line for line in suspects_lines({"lookalikes": [group]}) if line]
+    assert len(lines) == 2
+    assert "`psf_profile` or `front_back_asymmetry`" in lines[0] and "`psf_profile` is named: it fits fewer parameters." in lines[0]
+    assert "`psf_profile` or `focus_offset`" in lines[1] and "fewer parameters" not in lines[1]

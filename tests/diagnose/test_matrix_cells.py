@@ -77,6 +77,7 @@ def test_exact_look_alikes_are_reported_together_with_the_capture_that_separates
     groups = [g for g in res["lookalikes"] if pair <= set(g["names"])]
     assert groups and groups[0]["names"][0] == res["causes"][0]["name"], res["lookalikes"]
     assert "both sides of focus" in groups[0]["captures"][0]
+    assert groups[0]["fewer_parameters_than"] == []  # 2 parameters each here: no parsimony claimed
 
 
 def test_of_two_look_alikes_the_one_with_fewer_parameters_is_named(tmp_path: Path) -> None:
@@ -91,6 +92,6 @@ def test_of_two_look_alikes_the_one_with_fewer_parameters_is_named(tmp_path: Pat
         assert c["gain_ci_db"][0] > 0, c
     group = next(g for g in res["lookalikes"] if g["names"][0] == "psf_profile")
     assert "front_back_asymmetry" in group["names"] and group["kinds"][group["names"].index("front_back_asymmetry") - 1] == "instead"
-    assert "both sides of focus" in group["captures"][0]
+    assert "both sides of focus" in group["captures"][0] and group["fewer_parameters_than"] == ["front_back_asymmetry"]
     fba = next(f for f in res["findings"] if f["effect"] == "front_back_asymmetry")
     assert fba["stage"] == "look-alike" and not fba["detected"] and "psf_profile is named in its place" in fba["explanation"]
