@@ -162,6 +162,8 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
         left, right: (B, 3, H, W), each ``H * sharp`` (PSFs sum to 1; no factor 1/2 yet).
     """
     B, _, H, W = sharp.shape
+    if coc.shape[1] == 3 and bool((coc[:, 1:] == coc[:, :1]).all()):
+        coc = coc[:, :1]  # one CoC for all colours (a chromatic defocus held at zero): the same render, 4 channels not 6
     nodes = _nodes(coc, valid, cfg)
     K = nodes.shape[0]
     kl = kernel_fn(nodes)  # (K, Ck, n, n)
