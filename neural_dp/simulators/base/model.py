@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -112,6 +113,24 @@ class Component(torch.nn.Module):
         """Parameters to report (default: ``params``)."""
         return dict(self.params)
 
+    def render_state(self) -> tuple:
+        """Everything of this component that the layered render reads, hashable (default: its class and
+        ``params``): the key of :data:`_LAYERS_CACHE`. A component whose hooks read other state must add it."""
+        return (type(self).__qualname__, tuple(sorted(self.params.items())))
+
+
+_LAYERS_CACHE: "OrderedDict[tuple, tuple[DPBatch, Tensor | None, tuple[int, ...], Tensor, Tensor]]" = OrderedDict()
+_LAYERS_CACHE_BYTES = 256 * 2**20
+"""Layered renders of the last model states, by batch, field and :meth:`BaseModel.render_state`: a fit renders
+the point it just accepted again for its Jacobian, a selection renders a confirmed model's crops again for the
+next screen (one render in eight of a diagnosis was a repeat). Bounded by the renders' total size."""
+
+
+def _versions(batch: DPBatch, field: Tensor | None) -> tuple[int, ...]:
+    """The in-place version counters of the tensors a render reads (a cached render of a changed batch is stale)."""
+    ts = [getattr(batch, f.name) for f in dataclasses.fields(batch)] + [field]
+    return tuple(t._version for t in ts if isinstance(t, Tensor))
+
 
 class BaseModel(DPSimulator):
     """The ideal occlusion-aware thin-lens DP model (half-aperture split) plus optional effect components.
@@ -194,11 +213,36 @@ class BaseModel(DPSimulator):
 
         return fn
 
+    def render_state(self) -> tuple:
+        """Everything the layered render reads of the model, hashable: base parameters, discretisation and each
+        component's :meth:`Component.render_state`."""
+        return (tuple(sorted(self.params.items())), self.sharp_deblur_iters, dataclasses.astuple(self.config),
+                tuple(c.render_state() for c in self.components))
+
     def render_layers_only(self, batch: DPBatch, field: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """The layered render before gain and post hooks: (left, right), each ``H * sharp``.
 
         Where a component's PSF depends on the aperture (:attr:`Component.shape_needs_optics`), the pairs of
-        each (f-number, pixel pitch) are rendered apart, with that optics as the kernels' context."""
+        each (f-number, pixel pitch) are rendered apart, with that optics as the kernels' context. Without
+        autograd the result is cached (:data:`_LAYERS_CACHE`) for the same batch, field and
+        :meth:`render_state`; callers must not change it in place."""
+        if torch.is_grad_enabled():
+            return self._render_layers_by_optics(batch, field)
+        key = (id(batch), id(field), self.render_state())
+        versions = _versions(batch, field)
+        hit = _LAYERS_CACHE.get(key)
+        if hit is not None and hit[0] is batch and hit[1] is field and hit[2] == versions:
+            _LAYERS_CACHE.move_to_end(key)
+            return hit[3], hit[4]
+        left, right = self._render_layers_by_optics(batch, field)
+        _LAYERS_CACHE[key] = (batch, field, versions, left, right)
+        size = lambda e: e[3].numel() * e[3].element_size() + e[4].numel() * e[4].element_size()  # noqa: E731
+        total = sum(size(e) for e in _LAYERS_CACHE.values())
+        while len(_LAYERS_CACHE) > 1 and total > _LAYERS_CACHE_BYTES:
+            total -= size(_LAYERS_CACHE.popitem(last=False)[1])
+        return left, right
+
+    def _render_layers_by_optics(self, batch: DPBatch, field: Tensor | None) -> tuple[Tensor, Tensor]:
         B, _, H, W = batch.sharp.shape
         if field is None:
             field = field_coords(B, H, W, batch.sharp.device)

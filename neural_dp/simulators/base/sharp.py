@@ -48,13 +48,14 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     on a slanted plane (docs/diagnose.md, base model); one iteration removes about 90 % of it, two reach the
     renderer's floor. Discs under 2.4 px keep :math:`|1 - \hat B| < 1` below Nyquist, so the iteration
     converges where the DP blur lets detail through. ``iters = 0`` returns ``s``. Results are cached per
-    (sharp, coc, sharp f-numbers) tensors, iterations and discretisation: fits render the same batch many
+    (sharp, coc, sharp f-numbers) tensors and their in-place versions, iterations and discretisation: fits render the same batch many
     times (:data:`_RADIANCE_CACHE_BYTES` bounds the cache).
     """
     if iters <= 0 or batch.sharp_f_number is not None and bool((batch.sharp_f_number <= 0).all()):
         return batch.sharp.float()
     cfg = config or RenderConfig()
-    key = (id(batch.sharp), id(batch.coc_px), id(batch.sharp_f_number), int(iters), astuple(cfg))
+    versions = tuple(t._version for t in (batch.sharp, batch.coc_px, batch.valid, batch.sharp_f_number) if t is not None)
+    key = (id(batch.sharp), id(batch.coc_px), id(batch.sharp_f_number), versions, int(iters), astuple(cfg))
     hit = _RADIANCE_CACHE.get(key)
     if hit is not None and hit[0] is batch.sharp and hit[1] is batch.coc_px and hit[3] is batch.sharp_f_number:
         _RADIANCE_CACHE.move_to_end(key)
