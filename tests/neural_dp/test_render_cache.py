@@ -76,3 +76,45 @@ def test_the_layered_render_is_reused_only_for_the_same_batch_field_and_state() 
     with torch.enable_grad():
         fresh = model.render_layers_only(b, field)
     assert fresh[0] is not halved[0] and torch.allclose(fresh[0], halved[0], atol=1e-6)
+
+
+def test_one_view_alone_is_the_same_as_with_both() -> None:
+    b = _batch(seed=2)
+    both = render_layers(b.sharp, b.coc_px, b.valid, _kernels, RenderConfig())
+    left = render_layers(b.sharp, b.coc_px, b.valid, _kernels, RenderConfig(), ("l",))
+    right = render_layers(b.sharp, b.coc_px, b.valid, _kernels, RenderConfig(), ("r",))
+    assert left[1] is None and right[0] is None
+    assert torch.equal(left[0], both[0]) and torch.equal(right[1], both[1])
+    assert float((both[0] - both[1]).abs().max()) > 1e-3  # the views differ: the right one is not the left one again
+
+
+def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend() -> None:
+    """The PSF that changes along field x is rendered at nodes -1, 0, 1 and blended; a crop right of the centre
+    skips the two node views it does not weigh, and its views are still the blend of all three nodes."""
+    from neural_dp.simulators.base.components import FieldVaryingPSF
+    from neural_dp.simulators.base.model import FIELD_NODES_X
+
+    b = _batch(seed=3)
+    field = field_coords(2, 40, 56, "cpu")
+    field[:, 0] = 0.2 + 0.35 * (field[:, 0] + 1)  # field x in [0.2, 0.9]
+    fvp = FieldVaryingPSF()
+    fvp.params.update(vignetting=0.4, split_shift=0.2, coc_growth_at_corner=0.3)
+    model = BaseModel(rim_softness_px=0.6, components=[fvp])
+    with torch.enable_grad():
+        got = model.render_layers_only(b, field)
+    coc = fvp.coc(b.coc_px.float(), b, field)
+    from neural_dp.simulators.base.sharp import sharp_radiance
+
+    sharp = sharp_radiance(b, model.sharp_deblur_iters, model.config)
+    nodes = {}
+    for x in FIELD_NODES_X:
+        fvp.field_x = x
+        nodes[x] = render_layers(sharp, coc, b.valid, model._kernel_fn(x * x), model.config)
+    fvp.field_x = 0.0
+    fx = field[:, :1]
+    w = {-1.0: (-fx).clamp(min=0), 1.0: fx.clamp(min=0)}
+    w[0.0] = 1 - w[-1.0] - w[1.0]
+    want_l = sum(w[x] * nodes[x][0] for x in FIELD_NODES_X)
+    want_r = sum(w[x] * nodes[-x if x else 0.0][1] for x in FIELD_NODES_X)
+    assert torch.equal(got[0], want_l) and torch.equal(got[1], want_r)
+    assert float((nodes[1.0][0] - nodes[0.0][0]).abs().max()) > 1e-3  # the nodes differ: the blend matters

@@ -130,7 +130,8 @@ SYMMETRY_TOL = 1e-6
 in-focus node): its right view equals its left one and is not convolved again."""
 
 
-def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: RenderConfig) -> tuple[Tensor, Tensor]:
+def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: RenderConfig,
+                  views: tuple[str, ...] = ("l", "r")) -> tuple[Tensor | None, Tensor | None]:
     r"""Occlusion-aware layered DP rendering (before gain).
 
     Each pixel's colour and unit alpha are split between its two bracketing CoC nodes (linear weights
@@ -157,9 +158,12 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
         valid: (B, 1, H, W) bool; only used to choose the node range.
         kernel_fn: ``nodes (K,) -> (K, Ck, n, n)`` left-view kernels, Ck in {1, 3}.
         cfg: discretisation.
+        views: the views to render, ``"l"`` and/or ``"r"`` (each is computed apart from the other: one alone is
+            the same to the bit as with both, at about half the cost).
 
     Returns:
-        left, right: (B, 3, H, W), each ``H * sharp`` (PSFs sum to 1; no factor 1/2 yet).
+        left, right: (B, 3, H, W), each ``H * sharp`` (PSFs sum to 1; no factor 1/2 yet); None for a view not
+        rendered.
     """
     B, _, H, W = sharp.shape
     if coc.shape[1] == 3 and bool((coc[:, 1:] == coc[:, :1]).all()):
@@ -173,7 +177,7 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
     nc = 3 if per_channel else 1
     t = _fractional_index(coc, nodes)  # (B, Cc, H, W)
     node_c = [float(c) for c in nodes]
-    psfs = [_view_psfs(kl[k], support[k], 3 + nc) for k in range(K)]
+    psfs = [_view_psfs(kl[k], support[k], 3 + nc, views) for k in range(K)]
 
     def occludes(c_near: float, c_far: float) -> bool:
         return c_far - c_near > max(cfg.occlude_min_px, cfg.occlude_rel * max(abs(c_near), abs(c_far)))
@@ -184,9 +188,9 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
         tt = t[b0 : b0 + cfg.chunk]
         nb = s.shape[0]
         boxes = _node_boxes(tt, K)
-        acc = {v: torch.zeros_like(s) for v in ("l", "r")}
-        cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in ("l", "r")}
-        trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in ("l", "r")}
+        acc = {v: torch.zeros_like(s) for v in views}
+        cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in views}
+        trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in views}
         pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = []
         for k in range(K):
             if k not in boxes:
@@ -208,30 +212,30 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
             full = full[..., ry0 - (y0 - sup) : ry1 - (y0 - sup), rx0 - (x0 - sup) : rx1 - (x0 - sup)]
             reg = (ry0, ry1, rx0, rx1)
             alphas = {}
-            for v in ("l", "r"):
-                blurred = full[:, 0 if v == "l" else -1]
+            for v in views:
+                blurred = full[:, 0 if v == views[0] else -1]
                 col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
                 tr = trans[v][..., ry0:ry1, rx0:rx1]
                 acc[v][..., ry0:ry1, rx0:rx1] += tr * col
                 cov[v][..., ry0:ry1, rx0:rx1] += tr * alpha
                 alphas[v] = alpha
             pending.append((node_c[k], reg, alphas))
-        outs.append(tuple(acc[v] / cov[v].clamp(min=1e-6) for v in ("l", "r")))
-    return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs])
+        outs.append(tuple(acc[v] / cov[v].clamp(min=1e-6) if v in views else None for v in ("l", "r")))
+    return tuple(torch.cat([o[i] for o in outs]) if v in views else None for i, v in enumerate(("l", "r")))  # type: ignore[return-value]
 
 
-def _view_psfs(kernel: Tensor, support: int, channels: int) -> Tensor:
-    """The left kernel ``kernel`` (Ck, n, n) cropped to ``support`` and its hflip (the right kernel) as PSFs
-    for :func:`neural_dp.kernels.add_full_convolution`: (V, n', n') shared by all channels (Ck = 1) or
-    (V, channels, n', n') per channel (Ck = 3: colour, then alpha), with V = 1 (left only) when the kernel is
-    symmetric (:data:`SYMMETRY_TOL`; the right view is then the left one)."""
+def _view_psfs(kernel: Tensor, support: int, channels: int, views: tuple[str, ...] = ("l", "r")) -> Tensor:
+    """The left kernel ``kernel`` (Ck, n, n) cropped to ``support`` and its hflip (the right kernel), for the
+    ``views`` in that order, as PSFs for :func:`neural_dp.kernels.add_full_convolution`: (V, n', n') shared by all
+    channels (Ck = 1) or (V, channels, n', n') per channel (Ck = 3: colour, then alpha), with V = 1 when the
+    kernel is symmetric (:data:`SYMMETRY_TOL`; the right view is then the left one)."""
     h = kernel.shape[-1] // 2
     kv = kernel[..., h - support : h + support + 1, h - support : h + support + 1]
     symmetric = float((kv - kv.flip(-1)).abs().max()) <= SYMMETRY_TOL * float(kv.abs().max())
-    views = [kv] if symmetric else [kv, kv.flip(-1)]
+    ks = [kv] if symmetric else [kv if v == "l" else kv.flip(-1) for v in views]
     if kv.shape[0] == 1:
-        return torch.stack([v[0] for v in views])
-    return torch.stack([torch.cat([v, v], 0)[:channels] for v in views])
+        return torch.stack([k[0] for k in ks])
+    return torch.stack([torch.cat([k, k], 0)[:channels] for k in ks])
 
 
 def _occlude(trans: dict[str, Tensor], group: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]]) -> None:
