@@ -4,6 +4,7 @@ rendered as one channel (:func:`neural_dp.simulators.base.render.render_layers`)
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from dp5k_learn.batch import DPBatch
@@ -29,16 +30,23 @@ def _kernels(nodes: torch.Tensor) -> torch.Tensor:
     return half_disc_kernels(PSFShape(nodes, one, one * 0.5, one * 0.0, one * 0.0, one), 4)[:, None]
 
 
-def test_equal_colour_cocs_render_as_one_channel_to_the_bit() -> None:
+def test_equal_colour_cocs_render_as_one_channel_to_the_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    from neural_dp.simulators.base import render as render_mod
+
+    channels: list[int] = []
+    index = render_mod._fractional_index
+    monkeypatch.setattr(render_mod, "_fractional_index", lambda coc, nodes: (channels.append(coc.shape[1]), index(coc, nodes))[1])
     b = _batch()
     one = render_layers(b.sharp, b.coc_px, b.valid, _kernels, RenderConfig())
     three = render_layers(b.sharp, b.coc_px.expand(-1, 3, -1, -1).contiguous(), b.valid, _kernels, RenderConfig())
     assert all(torch.equal(x, y) for x, y in zip(one, three))
+    assert channels == [1, 1]  # the equal 3-channel CoC went the one-channel way
     # a colour whose CoC differs is still rendered with its own CoC
     coc = b.coc_px.expand(-1, 3, -1, -1).clone()
     coc[:, 2] += 1.5
     blue = render_layers(b.sharp, coc, b.valid, _kernels, RenderConfig())
     assert float((blue[0][:, 2] - one[0][:, 2]).abs().max()) > 1e-3
+    assert channels[-1] == 3
 
 
 def test_a_chromatic_defocus_at_zero_renders_as_the_model_without_it() -> None:
@@ -88,7 +96,7 @@ def test_one_view_alone_is_the_same_as_with_both() -> None:
     assert float((both[0] - both[1]).abs().max()) > 1e-3  # the views differ: the right one is not the left one again
 
 
-def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend() -> None:
+def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend(monkeypatch: pytest.MonkeyPatch) -> None:
     """The PSF that changes along field x is rendered at nodes -1, 0, 1 and blended; a crop right of the centre
     skips the two node views it does not weigh, and its views are still the blend of all three nodes."""
     from neural_dp.simulators.base.components import FieldVaryingPSF
@@ -100,8 +108,20 @@ def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend() -> No
     fvp = FieldVaryingPSF()
     fvp.params.update(vignetting=0.4, split_shift=0.2, coc_growth_at_corner=0.3)
     model = BaseModel(rim_softness_px=0.6, components=[fvp])
+    from neural_dp.simulators.base import model as model_mod
+
+    asked: dict[float, tuple[str, ...]] = {}
+    real = model_mod.render_layers
+
+    def spy(*args, **kw):
+        asked[fvp.field_x] = args[5] if len(args) > 5 else kw.get("views", ("l", "r"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(model_mod, "render_layers", spy)
     with torch.enable_grad():
         got = model.render_layers_only(b, field)
+    monkeypatch.setattr(model_mod, "render_layers", real)
+    assert asked == {-1.0: ("r",), 0.0: ("l", "r"), 1.0: ("l",)}  # four views of six
     coc = fvp.coc(b.coc_px.float(), b, field)
     from neural_dp.simulators.base.sharp import sharp_radiance
 
