@@ -205,11 +205,12 @@ def test_radiance_cache_is_bounded_and_keyed_by_the_batch(monkeypatch: pytest.Mo
     a different batch never gets another's result."""
     from neural_dp.simulators.base import sharp as base_mod
 
-    monkeypatch.setattr(base_mod, "_RADIANCE_CACHE", type(base_mod._RADIANCE_CACHE)())
+    from neural_dp.simulators.base.cache import TensorCache
+
     batches = [make_batch(torch.rand(1, 3, 24, 32, generator=torch.Generator().manual_seed(k)), torch.full((1, 1, 24, 32), 12.0))
                for k in range(3)]
-    one_entry = 3 * 24 * 32 * 4 * 2 + 24 * 32 * 4 + 4  # sharp + radiance, coc, f-numbers (bytes)
-    monkeypatch.setattr(base_mod, "_RADIANCE_CACHE_BYTES", one_entry)
+    one_entry = 3 * 24 * 32 * 4  # one radiance (bytes)
+    monkeypatch.setattr(base_mod, "_RADIANCE_CACHE", TensorCache(one_entry))
     first = [base_mod.sharp_radiance(b).clone() for b in batches]
     assert len(base_mod._RADIANCE_CACHE) == 1
     assert not torch.equal(first[0], batches[0].sharp)  # a 12 px CoC at f/2 means 1.1 px discs at f/22

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from collections import OrderedDict
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -13,6 +12,7 @@ from torch import Tensor
 from dp5k_learn.batch import DPBatch
 
 from ..interface import DPSimulator
+from .cache import TensorCache
 from .field import field_coords, field_r2
 from .fit import fit_parameters
 from .psf import PSFShape, half_disc_kernels, stack_centred
@@ -119,11 +119,10 @@ class Component(torch.nn.Module):
         return (type(self).__qualname__, tuple(sorted(self.params.items())))
 
 
-_LAYERS_CACHE: "OrderedDict[tuple, tuple[DPBatch, Tensor | None, tuple[int, ...], Tensor, Tensor]]" = OrderedDict()
-_LAYERS_CACHE_BYTES = 256 * 2**20
+_LAYERS_CACHE = TensorCache(256 * 2**20)
 """Layered renders of the last model states, by batch, field and :meth:`BaseModel.render_state`: a fit renders
 the point it just accepted again for its Jacobian, a selection renders a confirmed model's crops again for the
-next screen (one render in eight of a diagnosis was a repeat). Bounded by the renders' total size."""
+next screen (one render in eight of a diagnosis was a repeat). Bounded by the renders' total size (bytes)."""
 
 
 def _versions(batch: DPBatch, field: Tensor | None) -> tuple[int, ...]:
@@ -228,19 +227,11 @@ class BaseModel(DPSimulator):
         :meth:`render_state`; callers must not change it in place."""
         if torch.is_grad_enabled():
             return self._render_layers_by_optics(batch, field)
-        key = (id(batch), id(field), self.render_state())
-        versions = _versions(batch, field)
-        hit = _LAYERS_CACHE.get(key)
-        if hit is not None and hit[0] is batch and hit[1] is field and hit[2] == versions:
-            _LAYERS_CACHE.move_to_end(key)
-            return hit[3], hit[4]
-        left, right = self._render_layers_by_optics(batch, field)
-        _LAYERS_CACHE[key] = (batch, field, versions, left, right)
-        size = lambda e: e[3].numel() * e[3].element_size() + e[4].numel() * e[4].element_size()  # noqa: E731
-        total = sum(size(e) for e in _LAYERS_CACHE.values())
-        while len(_LAYERS_CACHE) > 1 and total > _LAYERS_CACHE_BYTES:
-            total -= size(_LAYERS_CACHE.popitem(last=False)[1])
-        return left, right
+        key = (id(batch), id(field), _versions(batch, field), self.render_state())
+        hit = _LAYERS_CACHE.get(key, (batch, field))
+        if hit is not None:
+            return hit
+        return _LAYERS_CACHE.put(key, (batch, field), self._render_layers_by_optics(batch, field))
 
     def _render_layers_by_optics(self, batch: DPBatch, field: Tensor | None) -> tuple[Tensor, Tensor]:
         B, _, H, W = batch.sharp.shape

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import astuple
 
 import torch
@@ -11,15 +10,16 @@ from torch import Tensor
 from dp5k_common.dataset import SHARP_F_NUMBER
 from dp5k_learn.batch import DPBatch
 
+from .cache import TensorCache
 from .psf import full_disc_kernels
 from .render import RenderConfig, render_layers
 
 __all__ = ["sharp_blur_coc_px", "sharp_radiance"]
 
 
-_RADIANCE_CACHE: "OrderedDict[tuple, tuple[Tensor, Tensor, Tensor, Tensor | None]]" = OrderedDict()
-_RADIANCE_CACHE_BYTES = 512 * 2**20
-"""The cache keeps each entry's sharp, CoC and radiance tensors alive; it is bounded by their total size."""
+_RADIANCE_CACHE = TensorCache(256 * 2**20)
+"""Deblurred sharp frames by their batch's sharp, CoC and sharp f-number tensors (kept alive by the entries),
+bounded by the radiances' total size."""
 
 
 def sharp_blur_coc_px(batch: DPBatch) -> Tensor:
@@ -49,17 +49,17 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     renderer's floor. Discs under 2.4 px keep :math:`|1 - \hat B| < 1` below Nyquist, so the iteration
     converges where the DP blur lets detail through. ``iters = 0`` returns ``s``. Results are cached per
     (sharp, coc, sharp f-numbers) tensors and their in-place versions, iterations and discretisation: fits render the same batch many
-    times (:data:`_RADIANCE_CACHE_BYTES` bounds the cache).
+    times (:data:`_RADIANCE_CACHE` is bounded in bytes).
     """
     if iters <= 0 or batch.sharp_f_number is not None and bool((batch.sharp_f_number <= 0).all()):
         return batch.sharp.float()
     cfg = config or RenderConfig()
     versions = tuple(t._version for t in (batch.sharp, batch.coc_px, batch.valid, batch.sharp_f_number) if t is not None)
     key = (id(batch.sharp), id(batch.coc_px), id(batch.sharp_f_number), versions, int(iters), astuple(cfg))
-    hit = _RADIANCE_CACHE.get(key)
-    if hit is not None and hit[0] is batch.sharp and hit[1] is batch.coc_px and hit[3] is batch.sharp_f_number:
-        _RADIANCE_CACHE.move_to_end(key)
-        return hit[2]
+    sources = (batch.sharp, batch.coc_px, batch.sharp_f_number)
+    hit = _RADIANCE_CACHE.get(key, sources)
+    if hit is not None:
+        return hit
     s = batch.sharp.float()
     coc_s = sharp_blur_coc_px(batch)
 
@@ -69,11 +69,5 @@ def sharp_radiance(batch: DPBatch, iters: int = 2, config: RenderConfig | None =
     x = s
     for _ in range(iters):
         x = x + (s - blur(x))
-    _RADIANCE_CACHE[key] = (batch.sharp, batch.coc_px, x, batch.sharp_f_number)
-    def nbytes(entry: tuple) -> int:
-        return sum(t.numel() * t.element_size() for t in entry if isinstance(t, Tensor))
-
-    total = sum(nbytes(e) for e in _RADIANCE_CACHE.values())
-    while len(_RADIANCE_CACHE) > 1 and total > _RADIANCE_CACHE_BYTES:
-        total -= nbytes(_RADIANCE_CACHE.popitem(last=False)[1])
+    _RADIANCE_CACHE.put(key, sources, x)
     return x
