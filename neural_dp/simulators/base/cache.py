@@ -57,7 +57,3 @@ class TensorCache:
         while len(self._entries) > 1 and self.nbytes > self.max_bytes:
             self.nbytes -= self._entries.popitem(last=False)[1][2]
         return value
-
-    def clear(self) -> None:
-        self._entries.clear()
-        self.nbytes = 0
