@@ -48,6 +48,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
+from dp5k_common.software import software_line
 from dp5k_testing import aperture_dp, foreign_dp
 
 TRIPLES: tuple[tuple[str, ...], ...] = (
@@ -322,6 +323,7 @@ def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int
         row["lookalikes"] = [{"names": list(g.get("names", [])), "capture": "; ".join(g.get("captures", []) or [g.get("capture", "")])} for g in rep.get("lookalikes", []) or []]
         row["gain_db"] = rep.get("gain", {}).get("psnr_after", 0.0) - rep.get("gain", {}).get("psnr_before", 0.0)
         row["timings_s"] = rep.get("timings_s", {})
+        row["software"] = rep.get("software", {})
     except Exception as exc:  # noqa: BLE001 - one failed case must not stop the matrix
         row["error"] = f"{type(exc).__name__}: {exc}"
         row["traceback"] = traceback.format_exc()[-2000:]
@@ -469,9 +471,10 @@ def report(rows: list[dict[str, Any]], strengths: dict[str, Any], details: bool)
     loads = [r["load_before"] for r in ok if "load_before" in r]
     commits = sorted({r["commit"] for r in ok})
     machines = sorted({str(r["nproc"]) for r in ok})
+    softwares = sorted({software_line(r["software"]) for r in ok if r.get("software")})
     parts = [f"{len(ok)} sets diagnosed ({len(errors)} failed), run {runs[0]} .. {runs[-1]}, load at start "
              f"{min(loads, default=float('nan')):.1f}-{max(loads, default=float('nan')):.1f}, commits {', '.join(commits) or '-'}, "
-             f"{'/'.join(machines) or '-'} CPUs."]
+             f"{'/'.join(machines) or '-'} CPUs, software {' | '.join(softwares) or 'not recorded'}."]
     for title, body in (("Named causes (strength: near the detection limit / moderate)", summary_table(ok)),
                         ("Clean sets", clean_table(ok)), ("Seconds per set (diagnose only; render separately)", seconds_table(ok))):
         parts += [f"\n### {title}\n", now + "\n", body]

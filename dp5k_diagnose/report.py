@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dp5k_common.io import atomic_path, write_json_atomic  # noqa: E402
+from dp5k_common.software import software_line  # noqa: E402
 
 
 def _save(fig: Any, path: Path) -> str:
@@ -288,5 +289,7 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
                   f"PSNR gain over the control on `{ne.get('split')}`: {gc['psnr_after'] - gc['psnr_before']:+.3f} dB "
                   f"(95 % CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}]).", "",
                   format_table(ne), ""] + [f"![neural reach]({f})" for f in ne.get("figures", [])] + [""]
+    if result.get("software"):
+        lines += [f"_Software: {software_line(result['software'])}._", ""]
     with atomic_path(out / "report.md") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")

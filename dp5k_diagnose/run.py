@@ -16,6 +16,7 @@ import torch
 from dp5k_common.dataset import SHARP_F_NUMBER, DatasetReader
 from dp5k_common.effects import EFFECT_NAMES, NO_EFFECT
 from dp5k_common.errors import BadInputError
+from dp5k_common.software import software_versions
 from neural_dp.registry import BaseModel, SimulatorSpec, model_to_spec
 
 from .data import Sample, crop_samples, full_samples, load_pairs, read_sharp_at, unstated_sharp_pairs
@@ -174,6 +175,7 @@ class Diagnosis:
             "splits_used": self.splits_used,
             "timings_s": self.timings_s,
             "sharp_reading": self.sharp_reading.to_json(),
+            "software": software_versions(),
         }
 
 

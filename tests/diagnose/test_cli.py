@@ -65,6 +65,10 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
     assert "Cause: `lr_gain_imbalance`" in md and "## Causes, in order" in md and "The fits saw 6 pairs" in md
     for fig in rep["figures"].values():
         assert (out / fig).is_file() and (out / fig).stat().st_size > 1000
+    # which libraries computed these numbers: they change what is named across releases (docs/diagnose.md)
+    import numpy, torch
+    assert rep["software"]["numpy"] == numpy.__version__ and rep["software"]["torch"] == torch.__version__
+    assert f"numpy {numpy.__version__}" in md
 
 
 def test_the_default_report_folder_is_named_for_the_simulator(tmp_path: Path) -> None:
