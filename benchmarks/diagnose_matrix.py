@@ -549,21 +549,28 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("diagnose-matrix"), help="results.jsonl, strengths.json, reports/ (default ./diagnose-matrix)")
     ap.add_argument("--quick", action="store_true", help="moderate strength, seed 0, the aperture renderer")
-    ap.add_argument("--renderers", default="foreign,aperture")
-    ap.add_argument("--cases", default="all", help="names (a, a+b, none) and groups clean, singles, pairs, triples, all")
-    ap.add_argument("--strengths", default="near,moderate")
-    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--renderers", help="comma-separated, from foreign, aperture (default both)")
+    ap.add_argument("--cases", help="names (a, a+b, none) and groups clean, singles, pairs, triples, all (default all)")
+    ap.add_argument("--strengths", help="comma-separated, from near, moderate (default both)")
+    ap.add_argument("--seeds", help="comma-separated integers (default 0,1,2)")
     ap.add_argument("--size", default="256x170", help="WxH of the rendered pairs")
     ap.add_argument("--pairs", type=int, default=24, help="pairs per set (scenes x 2 f-numbers)")
     ap.add_argument("--jobs", type=int, default=1, help="cases run in this many processes at once, one thread each")
     ap.add_argument("--keep", action="store_true", help="keep each case's dataset and report under OUT/sets/")
-    ap.add_argument("--report-only", action="store_true", help="print the tables from OUT/results.jsonl and exit")
+    ap.add_argument("--report-only", action="store_true",
+                    help="print the tables from OUT/results.jsonl and exit: every row, or the cases that --quick, "
+                         "--renderers, --cases, --strengths and --seeds select when any is given")
     ap.add_argument("--details", action="store_true", help="also print every set's row (always when 60 rows or fewer)")
     ap.add_argument("--calibrate", action="store_true", help="(re)compute the near strengths, print them and exit")
     ap.add_argument("--time-render", action="store_true", help="time writing one set per renderer (one thread), print and exit")
     a = ap.parse_args(argv)
+    selected_by_flags = a.quick or any(v is not None for v in (a.renderers, a.cases, a.strengths, a.seeds))
     if a.quick:
         a.strengths, a.seeds, a.renderers = "moderate", "0", "aperture"
+    a.renderers = a.renderers or "foreign,aperture"
+    a.cases = a.cases or "all"
+    a.strengths = a.strengths or "near,moderate"
+    a.seeds = a.seeds or "0,1,2"
     renderers = [r.strip() for r in a.renderers.split(",") if r.strip()]
     bad = [r for r in renderers if r not in RENDERERS]
     levels = [s.strip() for s in a.strengths.split(",") if s.strip()]
@@ -590,11 +597,15 @@ def main(argv: list[str] | None = None) -> int:
         print(strengths_markdown({r: {k: v} for r, t in strengths_table(a.out, renderers, size, True).items()
                                   for k, v in t.items() if r in renderers}))
         return 0
+    cases = build_cases(renderers, case_sets(a.cases), levels, seeds)
     if a.report_only:
         path = a.out / "strengths.json"
-        print(report(load_rows(results), json.loads(path.read_text()) if path.exists() else {}, a.details))
+        rows = load_rows(results)
+        if selected_by_flags:
+            keys = {c.key for c in cases}
+            rows = [r for r in rows if r["key"] in keys]
+        print(report(rows, json.loads(path.read_text()) if path.exists() else {}, a.details))
         return 0
-    cases = build_cases(renderers, case_sets(a.cases), levels, seeds)
     done = {r["key"] for r in load_rows(results) if not r.get("error")}
     todo = [c for c in cases if c.key not in done]
     table = strengths_table(a.out, renderers, size, any(c.level == "near" for c in todo))
