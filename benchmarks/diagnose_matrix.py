@@ -256,12 +256,13 @@ def case_strengths(case: Case, table: dict[str, Any], size: tuple[int, int]) -> 
 
 # ----------------------------------------------------------------------------------------------- one case
 def stamp() -> dict[str, Any]:
-    """Date, 1/5/15-min load, commit (``+changes`` when tracked files differ from it) and CPU count now."""
+    """Date, 1/5/15-min load, commit (``+changes`` when tracked files differ from it; the benchmarks' own result
+    files under ``benchmarks/results/``, which a running matrix appends to, do not count) and CPU count now."""
     here = Path(__file__).parent
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, cwd=here).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, check=True,
-                               cwd=here).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":(exclude)benchmarks/results"],
+                               capture_output=True, text=True, check=True, cwd=here.parent).stdout.strip()
         commit += "+changes" if dirty else ""
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
