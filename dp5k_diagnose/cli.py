@@ -87,6 +87,12 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)
     res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
                                                           sharp_f_number=sharp_n, threads=threads))
+    print_summary(res, out)
+
+
+def print_summary(res: dict, out: Path) -> None:
+    """Print what ``res`` (report.json's content) found: the causes in order, look-alikes, suspects, the fits'
+    coverage, the held-out gain and where the report is."""
     g = res["gain"]
     sr = res.get("sharp_reading") or {}
     if sr.get("source") == "selected":
@@ -100,13 +106,13 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
         for c in res["causes"]:
             click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI over held-out tiles [{c['gain_ci_db'][0]:+.3f}, "
                        f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
-    for g in res.get("lookalikes") or []:
-        for other, capture, kind in zip(g["names"][1:], g["captures"], g["kinds"]):
+    for group in res.get("lookalikes") or []:  # not ``g``: the gain is printed below
+        for other, capture, kind in zip(group["names"][1:], group["captures"], group["kinds"]):
             if kind == "also":
-                click.echo(f"look-alike: {g['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
+                click.echo(f"look-alike: {group['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
             else:
-                why = f"; {g['names'][0]} is named: it fits fewer parameters" if other in (g.get("fewer_parameters_than") or []) else ""
-                click.echo(f"look-alike: {g['names'][0]} or {other} (indistinguishable on this data{why}; to tell them apart, capture {capture})")
+                why = f"; {group['names'][0]} is named: it fits fewer parameters" if other in (group.get("fewer_parameters_than") or []) else ""
+                click.echo(f"look-alike: {group['names'][0]} or {other} (indistinguishable on this data{why}; to tell them apart, capture {capture})")
     for sp in res.get("suspects") or []:
         click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
                    f"(95% CI over held-out tiles [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")

@@ -78,3 +78,26 @@ def test_the_default_report_folder_is_named_for_the_simulator(tmp_path: Path) ->
     assert "/" not in spec.folder_name() and ":" not in spec.folder_name() and spec.folder_name().startswith("neural_")
     res = CliRunner().invoke(main, ["diagnose", str(tmp_path), "--simulator", str(spec), "--fit-pairs", "6"])
     assert res.exit_code == 3 and "Neural DP checkpoint not found" in res.output and "a.pt" in res.output
+
+
+def _summary_input(lookalikes: list[dict]) -> dict:
+    """The parts of report.json that :func:`print_summary` reads, as a diagnosis with one cause writes them."""
+    cause = {"step": 1, "name": "psf_profile", "gain_db": 0.5, "gain_ci_db": [0.2, 0.8], "step_gain_db": 0.5, "cumulative_gain_db": 0.5}
+    return {"cause": "psf_profile", "findings": [{"explanation": "the blur disc is not uniform"}], "causes": [cause, {**cause, "step": 2}],
+            "lookalikes": lookalikes, "suspects": [], "fit_coverage": {"pairs": 4, "scenes": 2, "field_zones": 8, "field_zones_of": 9},
+            "gain": {"split": "test", "psnr_before": 30.0, "psnr_after": 30.5, "psnr_gain_ci95": [0.2, 0.8]}}
+
+
+def test_summary_prints_the_gain_after_lookalikes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A look-alike group printed before the gain (it once reused the gain's variable name: report.json was
+    written and then the command failed with KeyError 'split')."""
+    from dp5k_diagnose.cli import print_summary
+
+    groups = [{"names": ["psf_profile", "front_back_asymmetry", "focus_offset"], "captures": ["both sides of focus", "a second focus distance"],
+               "kinds": ["instead", "also"], "fewer_parameters_than": ["front_back_asymmetry"]}]
+    print_summary(_summary_input(groups), tmp_path)
+    out = capsys.readouterr().out
+    assert "look-alike: psf_profile or front_back_asymmetry (indistinguishable on this data; psf_profile is named: it fits fewer" in out
+    assert "look-alike: psf_profile may hide focus_offset" in out
+    assert "gain on test (predictable pixels): PSNR 30.000 -> 30.500 dB" in out
+    assert out.rstrip().endswith(f"report: {tmp_path / 'report.md'}")
