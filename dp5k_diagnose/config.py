@@ -91,6 +91,11 @@ class SelectConfig:
             preference for the cause is not significant or smaller than this share of the cause's threshold
             (of the systematic error the swapped model leaves).
         lookalike_tries: at most this many effects (the most correlated first) are tried in a cause's place.
+        prescreen_margin: before each re-screen, the effects left out are screened at first order with the
+            last screen's Jacobian columns (measured around an earlier model) and the confirmed model's exact
+            residual; when none reaches this fraction of the screen's bar (``screen_share`` of its threshold),
+            the re-screen, which renders a Jacobian column per parameter, is not run and the selection ends.
+            0 always runs it.
     """
 
     screen_share: float = 0.5
@@ -100,3 +105,4 @@ class SelectConfig:
     lookalike_corr: float = 0.9
     lookalike_loss: float = 0.25
     lookalike_tries: int = 2
+    prescreen_margin: float = 0.25

@@ -24,7 +24,9 @@ once and removes what the held-out pairs do not need:
    The models without each cause are what each cause's held-out gain given the others is measured against.
    A **re-screen** around the confirmed model proposes the effects it masked; the larger full model they make
    is eliminated and confirmed in turn, and replaces the confirmed model only when the detection pairs prefer
-   it (:func:`predicts_better`).
+   it (:func:`predicts_better`). Each re-screen is first done at first order on the last screen's Jacobian
+   columns with the confirmed model's exact residual (:func:`first_order_rescreen`, one render); when no
+   effect comes within :attr:`SelectConfig.prescreen_margin` of the bar, the exact re-screen is not run.
 5. **Look-alikes** (:func:`find_lookalikes`): each named cause C is swapped for every effect F whose
    Jacobian correlates with C's; when F, refitted in C's place, predicts the detection pairs as well as C
    (not significantly and materially worse) while explaining what C explained, the two are reported
@@ -123,6 +125,10 @@ class Screen:
     candidates: list[str]
     systematic: float = 0.0
     """The fit crops' systematic squared error the shares are measured on."""
+    lin: Linearization | None = field(default=None, repr=False)
+    """The linearization it was measured from (:func:`screen_effects`; dropped when no longer needed)."""
+    keys: list[Key] = field(default_factory=list, repr=False)
+    """``lin``'s parameters as (owner, name) keys."""
 
     def correlation(self, a: str, b: str) -> float:
         return self.corr.get(tuple(sorted((a, b))), 0.0)  # type: ignore[arg-type]
@@ -395,6 +401,16 @@ def canonical_corr(A: np.ndarray, a: list[int], b: list[int], nuis: list[int]) -
     return float(np.clip(np.linalg.norm(C, 2), 0.0, 1.0)) if C.size else 0.0
 
 
+def screen_point(model: BaseModel, new: dict[str, object], fit: Sequence[Sample]) -> tuple[BaseModel, list[tuple[object, str]]]:
+    """The model a screen linearizes (``model`` with the effects ``new`` added at their neutral values) and its
+    targets: the new effects' parameters the crops constrain, then the base model's gain and PSF nuisances."""
+    point = model.replaced(sorted([copy.deepcopy(c) for c in model.components] + [copy.deepcopy(c) for c in new.values()],
+                                  key=lambda c: c.stage))
+    targets = [(c, n) for c in point.components if c.name in new for n in fittable_names(c, fit)]
+    targets += [(point, "gain")] + [(point, k) for k in PSF_NUISANCE]
+    return point, targets
+
+
 def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sample], noise: Finding | None,
                    cfg: DetectConfig, sel: SelectConfig, sharp: SharpNoise | None = None, least: float = 0.0) -> Screen:
     """The first-order screen of the effects ``new`` around the fitted ``model`` (the base model, or a model
@@ -405,12 +421,45 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
     threshold; and every effect whose unique part of the joint step of all effects is that large. Shares are
     of the fit crops' systematic error around ``model``, but of at least ``least`` (a re-screen passes
     :func:`least_systematic` of the base model's: what little the confirmed causes leave is not a scale to
-    measure a further one on, as in the tests)."""
-    point = model.replaced(sorted([copy.deepcopy(c) for c in model.components] + [copy.deepcopy(c) for c in new.values()],
-                                  key=lambda c: c.stage))
-    targets = [(c, n) for c in point.components if c.name in new for n in fittable_names(c, fit)]
-    targets += [(point, "gain")] + [(point, k) for k in PSF_NUISANCE]
+    measure a further one on, as in the tests). The returned screen keeps its linearization
+    (:attr:`Screen.lin`) for :func:`first_order_rescreen`."""
+    point, targets = screen_point(model, new, fit)
     lin = jacobian(point, targets, fit)
+    out = screen_from(lin, point, targets, new, fit, noise, cfg, sel, sharp, least)
+    out.lin, out.keys = lin, [(owner_key(point, o), n) for o, n in targets]
+    return out
+
+
+def first_order_rescreen(last: Screen, model: BaseModel, new: dict[str, object], fit: Sequence[Sample], noise: Finding | None,
+                         cfg: DetectConfig, sel: SelectConfig, sharp: SharpNoise | None = None, least: float = 0.0) -> Screen | None:
+    r"""The screen of ``new`` around ``model`` (:func:`screen_effects`) with the Jacobian columns of the screen
+    ``last`` (measured around an earlier model, on the same crops ``fit``) and ``model``'s exact residual, its
+    bar lowered to :attr:`SelectConfig.prescreen_margin` of the screen's: one render of the crops instead of one
+    per parameter. Its candidates say only whether the exact screen is worth running. None when ``last``
+    lacks a column (an effect the last screen did not hold, its linearization dropped).
+
+    The residual around the confirmed model is exact; the columns are those of the model it was confirmed
+    from, off by the second-order terms :math:`\partial^2 r / \partial\theta_c \partial\theta_f \, \Delta\theta_c`
+    (a confirmed gain ramp scales every column by the ramp, a confirmed shift moves them): hence the margin."""
+    if last.lin is None or not last.keys:
+        return None
+    point, targets = screen_point(model, new, fit)
+    column = {k: j for j, k in enumerate(last.keys)}
+    keys = [(owner_key(point, o), n) for o, n in targets]
+    if any(k not in column for k in keys):
+        return None
+    r = residual_vector(point, fit)
+    if r.numel() != last.lin.r.numel():
+        return None
+    lin = Linearization(targets, get_values(targets), r, last.lin.J[:, [column[k] for k in keys]])
+    return screen_from(lin, point, targets, new, fit, noise, cfg, sel, sharp, least, bar_scale=sel.prescreen_margin)
+
+
+def screen_from(lin: Linearization, point: BaseModel, targets: list[tuple[object, str]], new: dict[str, object], fit: Sequence[Sample],
+                noise: Finding | None, cfg: DetectConfig, sel: SelectConfig, sharp: SharpNoise | None = None, least: float = 0.0,
+                bar_scale: float = 1.0) -> Screen:
+    """The screen's shares, candidates, correlations and joint step from a linearization ``lin`` of ``point``
+    in ``targets`` (:func:`screen_effects`); ``bar_scale`` scales every effect's bar."""
     systematic = max(fit_systematic(fit, lin.sse, noise, cfg, sharp), least)
     idx = {n: lin.index(point.component(n)) for n in new}
     current = [i for i in range(len(targets)) if not any(i in v for v in idx.values())]
@@ -427,7 +476,7 @@ def screen_effects(model: BaseModel, new: dict[str, object], fit: Sequence[Sampl
         share[n] = max(alone[n], unique[n])
 
     def bar(n: str) -> float:
-        return sel.screen_share * cfg.threshold(n)
+        return bar_scale * sel.screen_share * cfg.threshold(n)
 
     # greedy at first order: the effect that adds most to those taken, while it adds enough; look-alikes of a
     # taken effect then add little (a focus offset's blur-size look-alikes, a front size factor, red and blue
@@ -735,6 +784,7 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
     comps = neutral_components([e for e in structural if e not in untestable], fit)
     neutral = {n: dict(c.params) for n, c in comps.items()}
     screen = screen_effects(base, comps, pool, noise0, cfg, sel, sharp)
+    last = screen  # the screen whose Jacobian the next re-screen's first-order check reuses
     rounds: list[dict[str, Any]] = []
     trace: dict[str, Any] = {"method": "screen, full model, backward elimination on the detection pairs, refitted confirmation, "
                                        "re-screen around the confirmed model", "screen": screen.to_json(), "rescreens": [], "rounds": rounds,
@@ -767,14 +817,25 @@ def select_causes(base: BaseModel, fit: list[Sample], det_samples: list[Sample],
         rest = {n: comps[n] for n in comps if n not in conf.names}
         if k == sel.rescreens or not rest:
             break
-        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp, least_systematic(screen.systematic, pool, cfg, 1))
-        trace["rescreens"].append({"model": list(conf.names), **again.to_json()})
+        least = least_systematic(screen.systematic, pool, cfg, 1)
+        cheap = first_order_rescreen(last, conf.model, rest, pool, noise0, cfg, sel, sharp, least) if sel.prescreen_margin > 0 else None
+        if cheap is not None and not cheap.candidates:  # nothing near the bar even at first order: the exact screen is not run
+            trace["rescreens"].append({"model": list(conf.names), "first_order": True, **cheap.to_json()})
+            log.info("re-screen at first order on the last screen's Jacobian: nothing within %.2f of the bar", sel.prescreen_margin)
+            for n in rest:
+                screen.share[n] = max(screen.share.get(n, 0.0), cheap.share[n])
+            break
+        again = screen_effects(conf.model, rest, pool, noise0, cfg, sel, sharp, least)
+        last.lin, last = None, again
+        trace["rescreens"].append({"model": list(conf.names), **again.to_json(),
+                                   **({"first_order_share": dict(cheap.share), "first_order_candidates": list(cheap.candidates)} if cheap else {})})
         for n in rest:
             screen.share[n] = max(screen.share.get(n, 0.0), again.share[n])
         if not [n for n in again.candidates if n not in names]:
             break  # nothing the last full model did not already hold
         names = conf.names + again.candidates
         values = again.values  # start_full_model keeps the confirmed causes as fitted
+    screen.lin = last.lin = None  # the Jacobians are the largest arrays a selection holds
     for n in conf.names:
         ctx.removed.pop(n, None)
     trace["full_model"] = trace["full_models"][-1] if trace["full_models"] else {"components": {}}

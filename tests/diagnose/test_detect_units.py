@@ -543,3 +543,44 @@ def test_report_md_says_why_the_simpler_look_alike_is_named() -> None:
     assert len(lines) == 2
     assert "`psf_profile` or `front_back_asymmetry`" in lines[0] and "`psf_profile` is named: it fits fewer parameters." in lines[0]
     assert "`psf_profile` or `focus_offset`" in lines[1] and "fewer parameters" not in lines[1]
+
+
+def test_the_first_order_re_screen_reuses_the_last_screens_columns() -> None:
+    """The check before a re-screen (:func:`first_order_rescreen`): around the model the last screen was measured
+    at, it is that screen (the same columns, found by owner and name); around a model holding a confirmed
+    gain ramp, the planted psf_profile it left still carries a share near the exact re-screen's, and an effect
+    the last screen did not hold gives no check (None: the exact screen runs)."""
+    from dp5k_diagnose.config import SelectConfig
+    from dp5k_diagnose.selection import first_order_rescreen, neutral_components, screen_effects
+    from neural_dp.registry import COMPONENTS
+
+    sharp = scene(5, n=2)
+    B, _, H, W = sharp.shape
+    planted = BaseModel(rim_softness_px=0.5, gain=1.0).with_component(COMPONENTS["lr_gain_imbalance"]()).with_component(COMPONENTS["psf_profile"]())
+    planted.component("lr_gain_imbalance").params.update(a0=0.08, ax=0.1)
+    planted.component("psf_profile").params.update(rim_gain=0.8)
+    coc = torch.linspace(-8.0, 8.0, W).expand(B, 1, H, W).contiguous()
+    with torch.no_grad():
+        left, right = planted.render(make_batch(sharp, coc), field_coords(B, H, W))
+    fit = samples(sharp, left, right, coc)
+    cfg, sel = DetectConfig(nominal_shot_var=SHOT, nominal_read_sigma=READ), SelectConfig()
+    base = BaseModel(rim_softness_px=0.5, gain=1.0)
+    names = ["lr_gain_imbalance", "psf_profile", "misregistration"]
+    first = screen_effects(base, neutral_components(names, fit), fit, None, cfg, sel)
+    assert first.lin is not None and len(first.keys) == first.lin.J.shape[1]
+
+    same = first_order_rescreen(first, base, neutral_components(names, fit), fit, None, cfg, dataclasses.replace(sel, prescreen_margin=1.0))
+    assert same is not None and same.candidates == first.candidates
+    for n in names:
+        assert same.share[n] == pytest.approx(first.share[n], rel=1e-9, abs=1e-12)
+
+    confirmed = base.with_component(COMPONENTS["lr_gain_imbalance"]())
+    confirmed.component("lr_gain_imbalance").params.update(a0=0.08, ax=0.1)
+    rest = neutral_components(["psf_profile", "misregistration"], fit)
+    cheap = first_order_rescreen(first, confirmed, rest, fit, None, cfg, sel)
+    exact = screen_effects(confirmed, neutral_components(["psf_profile", "misregistration"], fit), fit, None, cfg, sel)
+    assert cheap is not None and "psf_profile" in cheap.candidates and "psf_profile" in exact.candidates
+    assert cheap.share["psf_profile"] == pytest.approx(exact.share["psf_profile"], rel=0.3)
+    assert cheap.share["misregistration"] < 0.25 * exact.share["psf_profile"]
+
+    assert first_order_rescreen(first, confirmed, neutral_components(["focus_offset"], fit), fit, None, cfg, sel) is None

@@ -264,3 +264,25 @@ def test_fit_base_finds_how_the_data_samples_its_psfs(truth_box: float) -> None:
     base = fit_base([Sample(dataclasses.replace(b, left=noisy[0], right=noisy[1]), fld)], iters=6)
     assert base.params["pixel_box"] == pytest.approx(truth_box, abs=0.15)
     assert base.params["rim_softness_px"] < 0.1
+
+
+def test_scored_values_are_the_masked_entries_and_follow_an_in_place_change() -> None:
+    """The fits' residuals gather the scored entries by a flat index kept per score map: the same entries in the
+    same order as the boolean mask, measured again when the map changes in place, forgotten with the map."""
+    import gc
+    from types import SimpleNamespace
+
+    from neural_dp.simulators.base import fit as fitting
+
+    g = torch.Generator().manual_seed(0)
+    score = torch.rand(2, 1, 9, 11, generator=g) > 0.5
+    sample = SimpleNamespace(score=score)
+    e = torch.rand(2, 6, 9, 11, generator=g)
+    assert torch.equal(fitting.scored_values(sample, e), e[score.expand(-1, 6, -1, -1)])
+    score[1, 0, 4] = ~score[1, 0, 4]  # in place: the index must not be the old one
+    assert torch.equal(fitting.scored_values(sample, e), e[score.expand(-1, 6, -1, -1)])
+    key = id(score)
+    assert key in fitting._SCORED_INDEX
+    del sample, score
+    gc.collect()
+    assert key not in fitting._SCORED_INDEX

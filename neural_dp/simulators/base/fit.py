@@ -23,6 +23,7 @@ effect swapped for a look-alike), all linear problems in the same Jacobian aroun
 from __future__ import annotations
 
 import logging
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -62,6 +63,24 @@ def _scored(s: Sample) -> Tensor:
     return s.score.expand(-1, 6, -1, -1)
 
 
+_SCORED_INDEX: dict[int, tuple[weakref.ref, int, Tensor]] = {}
+"""Per score map (by id, while it lives): (a reference to it, its version counter, the flat index)."""
+
+
+def scored_values(s: Sample, e: Tensor) -> Tensor:
+    """(n,) the entries of ``e`` (B, 6, H, W) at :func:`_scored`, in row-major order: ``e[_scored(s)]``, by a
+    flat index kept per score map (a boolean mask is resolved again on every call, 15 x the cost of the gather
+    on a (2, 6, 200, 200) residual; the index is measured again when the map changes in place)."""
+    key = s.score
+    hit = _SCORED_INDEX.get(id(key))
+    if hit is None or hit[0]() is not key or hit[1] != key._version:
+        k = id(key)
+        ref = weakref.ref(key, lambda _r, k=k: _SCORED_INDEX.pop(k, None) if _SCORED_INDEX.get(k, (None,))[0] is _r else None)
+        hit = (ref, key._version, torch.nonzero(_scored(s).reshape(-1)).squeeze(1))
+        _SCORED_INDEX[k] = hit
+    return e.reshape(-1).index_select(0, hit[2])
+
+
 def residual_vector(model: BaseModel, samples: Sequence[Sample], layers: Sequence[tuple[Tensor, Tensor]] | None = None) -> Tensor:
     """(n,) float64: prediction minus measurement of both views at the scored pixels of every sample."""
     out = []
@@ -69,7 +88,7 @@ def residual_vector(model: BaseModel, samples: Sequence[Sample], layers: Sequenc
         with torch.no_grad():
             l, r = model.render(s.batch, s.field, None if layers is None else layers[i])
         e = torch.cat([l - s.batch.left, r - s.batch.right], 1)
-        out.append(e[_scored(s)].double())
+        out.append(scored_values(s, e).double())
     return torch.cat(out)
 
 
@@ -176,7 +195,7 @@ def jacobian(model: BaseModel, targets: Sequence[Target], samples: Sequence[Samp
     cols: list[Tensor] = []
     for i, (o, n) in enumerate(targets):
         if o is model and n == "gain":
-            meas = torch.cat([torch.cat([s.batch.left, s.batch.right], 1)[_scored(s)].double() for s in samples])
+            meas = torch.cat([scored_values(s, torch.cat([s.batch.left, s.batch.right], 1)).double() for s in samples])
             cols.append((r0 + meas) / max(model.params["gain"], 1e-6))
             continue
         h = o.steps.get(n, 1e-2)  # type: ignore[attr-defined]
