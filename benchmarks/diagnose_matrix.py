@@ -21,7 +21,7 @@ variance is :data:`NEAR_NOISE_RATIO` x nominal (diagnose names noise above 1.5 x
 
 ``--cases``: comma-separated names (``none``, ``psf_profile``, ``lr_gain_imbalance+disparity_scale``, in any
 order) and groups ``clean``, ``singles``, ``pairs``, ``triples``, ``all`` (default). ``--quick``: the moderate
-strength, seed 0, the aperture renderer.
+strength, seed 0, one renderer (``aperture``, or the one ``--renderers`` names).
 """
 
 from __future__ import annotations
@@ -549,7 +549,7 @@ def time_rendering(renderers: list[str], size: tuple[int, int], pairs: int, work
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("diagnose-matrix"), help="results.jsonl, strengths.json, reports/ (default ./diagnose-matrix)")
-    ap.add_argument("--quick", action="store_true", help="moderate strength, seed 0, the aperture renderer")
+    ap.add_argument("--quick", action="store_true", help="moderate strength, seed 0, one renderer (aperture, or the one --renderers names)")
     ap.add_argument("--renderers", help="comma-separated, from foreign, aperture (default both)")
     ap.add_argument("--cases", help="names (a, a+b, none) and groups clean, singles, pairs, triples, all (default all)")
     ap.add_argument("--strengths", help="comma-separated, from near, moderate (default both)")
@@ -566,8 +566,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-render", action="store_true", help="time writing one set per renderer (one thread), print and exit")
     a = ap.parse_args(argv)
     selected_by_flags = a.quick or any(v is not None for v in (a.renderers, a.cases, a.strengths, a.seeds))
-    if a.quick:
-        a.strengths, a.seeds, a.renderers = "moderate", "0", "aperture"
+    if a.quick:  # one strength, one seed, one renderer (aperture unless --renderers names one)
+        a.strengths, a.seeds = "moderate", "0"
+        a.renderers = a.renderers or "aperture"
+        if "," in a.renderers:
+            raise SystemExit("diagnose_matrix: --quick runs one renderer; give --renderers foreign or aperture")
     a.renderers = a.renderers or "foreign,aperture"
     a.cases = a.cases or "all"
     a.strengths = a.strengths or "near,moderate"
