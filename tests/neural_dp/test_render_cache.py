@@ -106,7 +106,7 @@ def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend(monkeyp
     field = field_coords(2, 40, 56, "cpu")
     field[:, 0] = 0.2 + 0.35 * (field[:, 0] + 1)  # field x in [0.2, 0.9]
     fvp = FieldVaryingPSF()
-    fvp.params.update(vignetting=0.4, split_shift=0.2, coc_growth_at_corner=0.3)
+    fvp.params.update(split_shift=0.2, coc_growth_at_corner=0.3)  # along x only (vignetting: the next test)
     model = BaseModel(rim_softness_px=0.6, components=[fvp])
     from neural_dp.simulators.base import model as model_mod
 
@@ -138,3 +138,72 @@ def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend(monkeyp
     want_r = sum(w[x] * nodes[-x if x else 0.0][1] for x in FIELD_NODES_X)
     assert torch.equal(got[0], want_l) and torch.equal(got[1], want_r)
     assert float((nodes[1.0][0] - nodes[0.0][0]).abs().max()) > 1e-3  # the nodes differ: the blend matters
+
+
+def test_a_cut_pupil_renders_as_the_bilinear_blend_of_the_field_grid_nodes_it_weighs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Cat's-eye vignetting cuts the pupil along the field vector, so its PSF changes along y too: the views are
+    the bilinear blend of renders on the 3 x 3 grid of field nodes, each node's cut at ``vignetting`` (x, y a)
+    with ``a`` the frame's half-height over its half-width; a crop in the upper right quadrant renders only
+    the 8 node views it weighs of 18, and the y nodes differ (the cut's y part is rendered, not dropped)."""
+    from neural_dp.simulators.base import model as model_mod
+    from neural_dp.simulators.base.components import FieldVaryingPSF
+    from neural_dp.simulators.base.model import FIELD_NODES_X, FIELD_NODES_Y
+    from neural_dp.simulators.base.sharp import sharp_radiance
+
+    b = _batch(seed=4)
+    field = field_coords(2, 40, 56, "cpu", origin=(62, 0), full_size=(120, 80))  # x in [0.04, 0.97], y in [-1, -0.01]
+    unit = 79 / 119
+    fvp = FieldVaryingPSF()
+    fvp.params.update(vignetting=0.5)
+    model = BaseModel(rim_softness_px=0.6, components=[fvp])
+    asked: dict[tuple[float, float], tuple[str, ...]] = {}
+    real = model_mod.render_layers
+
+    def spy(*args, **kw):
+        asked[(fvp.field_x, round(fvp.field_y, 4))] = args[5] if len(args) > 5 else kw.get("views", ("l", "r"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(model_mod, "render_layers", spy)
+    with torch.enable_grad():
+        got = model.render_layers_only(b, field)
+    monkeypatch.setattr(model_mod, "render_layers", real)
+    up, mid = round(-unit, 4), 0.0
+    assert asked == {(-1.0, up): ("r",), (0.0, up): ("l", "r"), (1.0, up): ("l",),
+                     (-1.0, mid): ("r",), (0.0, mid): ("l", "r"), (1.0, mid): ("l",)}
+    sharp = sharp_radiance(b, model.sharp_deblur_iters, model.config)
+    nodes = {}
+    for x in FIELD_NODES_X:
+        for y in FIELD_NODES_Y:
+            fvp.field_x, fvp.field_y = x, y * unit
+            nodes[(x, y)] = render_layers(sharp, b.coc_px.float(), b.valid, model._kernel_fn(x * x), model.config)
+    fvp.field_x = fvp.field_y = 0.0
+
+    def tent(t: torch.Tensor) -> dict[float, torch.Tensor]:
+        w = {-1.0: (-t).clamp(min=0), 1.0: t.clamp(min=0)}
+        w[0.0] = 1 - w[-1.0] - w[1.0]
+        return w
+
+    wx, wy = tent(field[:, :1]), tent(field[:, 1:2])
+    grid = [(x, y) for x in FIELD_NODES_X for y in FIELD_NODES_Y]
+    want_l = sum(wx[x] * wy[y] * nodes[(x, y)][0] for x, y in grid)
+    want_r = sum(wx[x] * wy[y] * nodes[(-x if x else 0.0, y)][1] for x, y in grid)
+    torch.testing.assert_close(got[0], want_l, atol=1e-6, rtol=0)
+    torch.testing.assert_close(got[1], want_r, atol=1e-6, rtol=0)
+    assert float((nodes[(0.0, -1.0)][0] - nodes[(0.0, 0.0)][0]).abs().max()) > 1e-3  # a cut from above changes the PSF
+
+
+def test_a_pupil_cut_along_y_mirrors_the_psf_vertically() -> None:
+    """The cut's y part: the left-view PSF with the cutting circle at (dx, dy) is the vertical mirror of the
+    one at (dx, -dy) (the split line is vertical, so a cut from below is a cut from above mirrored), and the
+    circle centred at dy > 0 keeps the pupil's lower part (pupil y > 0), which lands below the chief ray behind
+    focus and above it in front: the PSF's centroid moves by sign(c) along y."""
+    from neural_dp.simulators.base.psf import _pushforward_kernel
+
+    for c in (6.0, -9.0):
+        down = _pushforward_kernel(c, 1.0, 0.3, 0.0, 0.0, 1.0, clip_dx=0.2, clip_dy=0.5)
+        up = _pushforward_kernel(c, 1.0, 0.3, 0.0, 0.0, 1.0, clip_dx=0.2, clip_dy=-0.5)
+        torch.testing.assert_close(down, up.flip(0), atol=1e-6, rtol=0)
+        n = down.shape[0]
+        ys = torch.arange(n, dtype=torch.float32) - n // 2
+        centroid_y = float((down.sum(1) * ys).sum())
+        assert centroid_y * (1 if c > 0 else -1) > 0.1 * abs(c) / 2, centroid_y

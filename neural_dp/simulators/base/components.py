@@ -12,8 +12,9 @@ lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y
                       right x 2/(1+rho) (``lr_ratio_center`` = exp(a0))
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
                       receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
-                      cat's-eye vignetting: at field x the pupil cut by a unit circle centred ``vignetting`` x
-                      pupil radii along x (each view's brightness corrected back); the split line moved to pupil
+                      cat's-eye vignetting: at field (x, y) the pupil cut by a unit circle centred ``vignetting``
+                      (x, y H/W) pupil radii, along the field vector (each view's brightness corrected back); the
+                      split line moved to pupil
                       x = ``split_shift`` x (each view's PSF and share of the light change, :func:`split_share`)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
@@ -105,9 +106,14 @@ class FieldVaryingPSF(Component):
     * ``edge_leak``: the photodiodes' split shifts off axis (the chief ray's angle), so one view receives
       ``edge_leak`` max(0, -x) of the other view's light (mirrored on the right);
     * ``vignetting``: a lens element other than the stop clips the pupil off axis (a cat's-eye pupil): at field
-      x the pupil is cut by a circle of radius 1 centred ``vignetting`` x pupil radii along x, each view's
-      brightness corrected back (its PSF, not its light, changes: the clipped half's blur narrows and its
-      disparity shrinks). Its sign says which side the clipping element sits on.
+      (x, y) the pupil is cut by a circle of radius 1 centred ``vignetting`` (x, y a) pupil radii, along the
+      field vector on the sensor (``a`` the frame's half-height over its half-width, so the cut is the same at
+      the same distance from the centre in any direction), each view's brightness corrected back (its PSF, not
+      its light, changes: off axis in x the clipped half's blur narrows and its disparity shrinks; off axis in y
+      both halves lose their top or bottom). Its sign says which side the clipping element sits on. Until
+      2026-12-06 the cut moved along x only: on ``aperture_dp``'s cat's-eye, whose stop moves along the field
+      vector, that left 43 % of the effect's signal unexplained (the cut's y part) and the effect at its
+      detection limit.
     * ``split_shift``: the photodiodes' split line itself moves off axis (the microlens offset against the chief
       ray's angle): at field x it crosses the pupil at :math:`u_x = ` ``split_shift`` x pupil radii (the left
       photodiode takes :math:`u_x <` it). Each view's PSF is the part of the disc on its side of the line, and
@@ -132,6 +138,10 @@ class FieldVaryingPSF(Component):
         return self.params.get("vignetting", 0.0) != 0.0 or self.params.get("split_shift", 0.0) != 0.0
 
     @property
+    def field_y_dependent(self) -> bool:  # type: ignore[override]
+        return self.params.get("vignetting", 0.0) != 0.0
+
+    @property
     def changes_psf(self) -> bool:  # type: ignore[override]
         return self.field_x_dependent
 
@@ -142,7 +152,7 @@ class FieldVaryingPSF(Component):
         v = self.params.get("vignetting", 0.0)
         s = self.params.get("split_shift", 0.0)
         if v:
-            shape = replace(shape, clip_dx=shape.clip_dx + v * self.field_x)
+            shape = replace(shape, clip_dx=shape.clip_dx + v * self.field_x, clip_dy=shape.clip_dy + v * self.field_y)
         if s:
             shape = replace(shape, split_dx=shape.split_dx + s * self.field_x)
         return shape

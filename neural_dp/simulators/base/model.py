@@ -13,7 +13,7 @@ from dp5k_learn.batch import DPBatch
 
 from ..interface import DPSimulator
 from .cache import TensorCache
-from .field import field_coords, field_r2
+from .field import field_coords, field_y_unit, field_r2
 from .fit import fit_parameters
 from .psf import PSFShape, half_disc_kernels, stack_centred
 from .render import RenderConfig, render_layers
@@ -38,6 +38,12 @@ FIELD_NODES_X: tuple[float, float, float] = (-1.0, 0.0, 1.0)
 are blended linearly in x, and the right view at x is the left view's mirror at -x (a pupil cut off axis is
 mirror-symmetric about the field's centre line, not about each view's split)."""
 
+FIELD_NODES_Y: tuple[float, float, float] = (-1.0, 0.0, 1.0)
+"""Field y (in [-1, 1], the field's own normalisation) at which a PSF that also changes along y
+(:attr:`Component.field_y_dependent`) is rendered: the views are then blended bilinearly over the 3 x 3 nodes of
+:data:`FIELD_NODES_X` x :data:`FIELD_NODES_Y` (the right view at (x, y) is the left view's mirror at (-x, y): a
+left-right mirror keeps y)."""
+
 FIELD_NODES_R2: tuple[float, float, float] = (0.0, 0.5, 1.0)
 """Squared field radii (corner = 1) at which a field-dependent PSF is rendered; views in between are blended
 linearly in r^2 (:meth:`BaseModel.render_layers_only`)."""
@@ -57,6 +63,9 @@ class Component(torch.nn.Module):
     field_x_dependent: ClassVar[bool] = False
     """True when :meth:`shape` reads :attr:`field_x` (the field x of the node being rendered, in [-1, 1]): the
     model then renders at :data:`FIELD_NODES_X`."""
+    field_y_dependent: ClassVar[bool] = False
+    """True when :meth:`shape` also reads :attr:`field_y` (implies :attr:`field_x_dependent`): the model then renders
+    at :data:`FIELD_NODES_X` x :data:`FIELD_NODES_Y`."""
     changes_psf: ClassVar[bool] = False
     post_only: ClassVar[bool] = False
     """True when the component only has a :meth:`post` hook (its fit can reuse one layered render)."""
@@ -93,6 +102,10 @@ class Component(torch.nn.Module):
 
     field_x: float = 0.0
     """The field x of the render in progress (:attr:`field_x_dependent`), set by the model."""
+    field_y: float = 0.0
+    """The field y of the render in progress (:attr:`field_y_dependent`), set by the model **in units of the
+    field's half-width** (the unit of :attr:`field_x`): ``(field_x, field_y)`` points along the field vector on
+    the sensor whatever the frame's aspect (node y = 1 of a 3:2 frame is ``field_y`` = 2/3)."""
 
     def shape(self, shape: PSFShape, channel: int, field_r2: float) -> PSFShape:
         """The PSF shape for colour ``channel`` (0..2, or -1 for all) at squared field radius ``field_r2``."""
@@ -276,28 +289,41 @@ class BaseModel(DPSimulator):
         return left, right
 
     def _render_along_x(self, sharp: Tensor, coc: Tensor, valid: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
-        """Render at :data:`FIELD_NODES_X` and blend linearly in field x; the right view at node x is the right
-        output of the render at node -x (:data:`FIELD_NODES_X`). A node's view that no pixel of the batch weighs
-        is not rendered (a crop right of the centre needs the left view of node 1 and the right view of node -1,
-        not the other two): the same output, with two views fewer."""
-        fx = field[:, :1].clamp(-1.0, 1.0)
-        w = {-1.0: (-fx).clamp(min=0), 1.0: fx.clamp(min=0)}
-        w[0.0] = 1 - w[-1.0] - w[1.0]
-        used = {x: bool((w[x] > 0).any()) for x in FIELD_NODES_X}
+        """Render at :data:`FIELD_NODES_X` (and :data:`FIELD_NODES_Y` where a component's PSF also changes along
+        y) and blend linearly in field x (bilinearly in x and y); the right view at node (x, y) is the right output
+        of the render at node (-x, y). A node's view that no pixel of the batch weighs is not rendered (a crop
+        right of the centre needs the left view of node 1 and the right view of node -1, not the other two): the
+        same output, with fewer views."""
+        def tent(t: Tensor) -> dict[float, Tensor]:
+            w = {-1.0: (-t).clamp(min=0), 1.0: t.clamp(min=0)}
+            w[0.0] = 1 - w[-1.0] - w[1.0]
+            return w
+
+        wx = tent(field[:, :1].clamp(-1.0, 1.0))
+        along_y = any(c.field_y_dependent for c in self.components)
+        wy = tent(field[:, 1:2].clamp(-1.0, 1.0)) if along_y else {0.0: None}
+        y_unit = field_y_unit(field) if along_y else 0.0
+        nodes = [(x, y) for x in FIELD_NODES_X for y in wy]
+        w = {(x, y): wx[x] if wy[y] is None else wx[x] * wy[y] for x, y in nodes}
+        used = {n: bool((w[n] > 0).any()) for n in nodes}
+
+        def mirror(n: tuple[float, float]) -> tuple[float, float]:
+            return (-n[0] if n[0] else 0.0, n[1])
+
         renders = {}
-        for x in FIELD_NODES_X:
-            views = tuple(v for v, on in (("l", used[x]), ("r", used[-x if x else 0.0])) if on)
+        for x, y in nodes:
+            views = tuple(v for v, on in (("l", used[(x, y)]), ("r", used[mirror((x, y))])) if on)
             if not views:
                 continue
             for c in self.components:
-                c.field_x = x
+                c.field_x, c.field_y = x, y * y_unit
             try:
-                renders[x] = render_layers(sharp, coc, valid, self._kernel_fn(x * x), self.config, views)
+                renders[(x, y)] = render_layers(sharp, coc, valid, self._kernel_fn(x * x), self.config, views)
             finally:
                 for c in self.components:
-                    c.field_x = 0.0
-        left = sum(w[x] * renders[x][0] for x in FIELD_NODES_X if used[x])
-        right = sum(w[x] * renders[-x if x else 0.0][1] for x in FIELD_NODES_X if used[x])
+                    c.field_x = c.field_y = 0.0
+        left = sum(w[n] * renders[n][0] for n in nodes if used[n])
+        right = sum(w[n] * renders[mirror(n)][1] for n in nodes if used[n])
         return left, right
 
     def render(self, batch: DPBatch, field: Tensor | None = None, layers: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:

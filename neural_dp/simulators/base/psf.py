@@ -53,6 +53,9 @@ class PSFShape:
     pupil part :math:`u_x < ` ``split_dx`` (0: the ideal half; off axis the chief ray's angle moves it). The
     kernel keeps its shape only (it sums to 1); the share of light each view gets is applied by the component
     that moves the split (:func:`split_share`)."""
+    clip_dy: Tensor | float = 0.0
+    """Vignetting along y: the cutting circle's centre is at (``clip_dx``, ``clip_dy``) pupil radii (a cat's-eye
+    pupil is cut along the field vector, so off axis in y it is cut from above or below)."""
     f_number: float = 0.0
     """The f-number of the pairs being rendered (0: not known); context for components whose PSF depends on
     the aperture (:attr:`neural_dp.simulators.base.model.Component.shape_needs_optics`), not a kernel input."""
@@ -115,14 +118,15 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
         return (t.reshape(-1).expand(K) if t.numel() == 1 else t.reshape(K)).tolist()
 
     cols = [per_node(t) for t in (coc, shape.scale, shape.softness_px, shape.rim2, shape.rim4, shape.split, shape.pixel_box, shape.sa_px,
-                                  shape.clip_dx, shape.split_dx)]
+                                  shape.clip_dx, shape.split_dx, shape.clip_dy)]
     kernels = []
     for k in range(K):
         node = tuple(c[k] for c in cols)
         key = (str(coc.device), supersample) + node
         ker = _KERNEL_CACHE.get(key)
         if ker is None:
-            build = _half_disc_kernel if node[7] == 0.0 and node[8] == 0.0 else _pushforward_kernel  # sa_px, clip_dx
+            thin = node[7] == 0.0 and node[8] == 0.0 and node[10] == 0.0  # no sa_px, clip_dx or clip_dy
+            build = _half_disc_kernel if thin else _pushforward_kernel
             ker = build(*node, supersample=supersample, device=coc.device)
             _KERNEL_CACHE[key] = ker
             if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
@@ -140,9 +144,12 @@ def stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:
 
 
 def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                      pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, supersample: int = 4,
-                      device: torch.device | str = "cpu") -> Tensor:
+                      pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, clip_dy: float = 0.0,
+                      supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node (the fields of :class:`PSFShape`, as floats), normalised to sum 1.
+
+    The thin-lens disc without a cut pupil: ``sa_px``, ``clip_dx`` and ``clip_dy`` are taken as 0 (nodes that
+    set them are built by :func:`_pushforward_kernel`).
 
     With radius :math:`R = s |c| / 2` (px), on a fine grid of ``ss`` (odd) samples per pixel:
 
@@ -220,8 +227,8 @@ def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Ten
 
 
 def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
-                        pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, supersample: int = 4,
-                        device: torch.device | str = "cpu") -> Tensor:
+                        pixel_box: float = 0.0, sa_px: float = 0.0, clip_dx: float = 0.0, split_dx: float = 0.0, clip_dy: float = 0.0,
+                        supersample: int = 4, device: torch.device | str = "cpu") -> Tensor:
     r"""The left-view PSF of one node with spherical aberration, as the pushforward of the pupil.
 
     A ray through the normalized pupil point :math:`u` (:math:`|u| \le 1`, :math:`\rho = |u|`) lands at
@@ -232,8 +239,9 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     pupil half :math:`u_x < 0`, whose rays land on the left half of the disc behind focus; ``split`` weights
     as in :func:`_half_disc_kernel`), splatted bilinearly on the fine landing grid, softened and sampled to
     pixels like the thin-lens kernel. Zones whose :math:`c_\rho` changes sign land on the other side: that is
-    how the PSF inverts its rim between front and back of focus. With ``clip_dx`` the pupil is also cut by a
-    circle of radius 1 centred ``clip_dx`` along x (vignetting); each view's PSF still sums to 1 (the
+    how the PSF inverts its rim between front and back of focus. With ``clip_dx`` / ``clip_dy`` the pupil is also
+    cut by a circle of radius 1 centred at (``clip_dx``, ``clip_dy``) (vignetting; pupil y lands along image y,
+    downwards, as pupil x lands along image x); each view's PSF still sums to 1 (the
     camera's per-view shading correction restores its brightness). ``split_dx`` moves the split line to
     :math:`u_x = ` ``split_dx``, as in :func:`_half_disc_kernel`.
     """
@@ -248,7 +256,7 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     ss = max(_fine_supersample(n), supersample | 1)
     m = int(min(SA_PUPIL_SAMPLES_MAX, max(32, math.ceil(2 * extent * ss * 1.5)))) & ~1  # even: none on u_x = 0
     ux, uy, rho2 = _pupil_grid(m, device)
-    inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + uy**2 <= 1.0)
+    inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + (uy - clip_dy) ** 2 <= 1.0)
     ux, uy, rho2 = ux[inside], uy[inside], rho2[inside]
     left = (ux < split_dx).float()  # the left photodiode's part of the pupil
     w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0) * ((1.0 - split) / 2.0 + split * left)
