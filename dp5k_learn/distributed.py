@@ -14,6 +14,8 @@ process group, this process's device and the collective operations. Without torc
 
 from __future__ import annotations
 
+import gc
+
 import torch
 import torch.distributed as dist
 
@@ -63,9 +65,19 @@ def setup(requested_device: str = "auto") -> tuple[RankInfo, torch.device]:
     return info, device
 
 
-def teardown() -> None:
-    if dist.is_available() and dist.is_initialized():
-        dist.destroy_process_group()
+def teardown(info: RankInfo | None = None) -> None:
+    """Leave the process group. With ``info`` (a run that ended normally on every rank), first free what is
+    unreachable (a DistributedDataParallel wrapper's reducer, while the group it uses still exists) and wait at
+    a barrier, so that no rank destroys its group while another is still talking to it: a rank that left
+    first is the likely cause of the other's abort at exit that CI saw once in the two-rank gloo test
+    (2026-12-05: "terminate called without an active exception", SIGABRT, after both ranks had trained). Without ``info`` (an error on this rank) the group is
+    destroyed at once: a barrier could wait for a rank that is gone."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    if info is not None and info.enabled:
+        gc.collect()
+        dist.barrier()
+    dist.destroy_process_group()
 
 
 def barrier(info: RankInfo) -> None:

@@ -53,12 +53,15 @@ Score = Callable[[DPBatch], dict[str, Tensor]]
 @contextmanager
 def joined(requested_device: str) -> Iterator[tuple[RankInfo, torch.device]]:
     """This process's rank and device for the length of a run: joins torchrun's process group (when launched
-    with several processes) and leaves it afterwards, also on error."""
+    with several processes) and leaves it afterwards, also on error. A run that ends normally first waits at a
+    barrier for every rank (:func:`~dp5k_learn.distributed.teardown`)."""
     info, device = D.setup(requested_device)
+    ok = False
     try:
         yield info, device
+        ok = True
     finally:
-        D.teardown()
+        D.teardown(info if ok else None)
 
 
 def open_splits(root: Path, data: DataConfig, seed: int) -> tuple[DPPairDataset, DPPairDataset]:
