@@ -207,3 +207,15 @@ def test_a_pupil_cut_along_y_mirrors_the_psf_vertically() -> None:
         ys = torch.arange(n, dtype=torch.float32) - n // 2
         centroid_y = float((down.sum(1) * ys).sum())
         assert centroid_y * (1 if c > 0 else -1) > 0.1 * abs(c) / 2, centroid_y
+
+
+def test_field_y_units_are_each_frames_half_height_over_its_half_width() -> None:
+    """Crops of a 120 x 80 and a 200 x 100 frame in one batch: each item's unit is its own frame's (79/119 and
+    99/199), read from its field's steps, whatever the crop's place and size."""
+    from neural_dp.simulators.base.field import field_y_units
+
+    a = field_coords(1, 40, 56, "cpu", origin=(62, 0), full_size=(120, 80))
+    b = field_coords(1, 40, 56, "cpu", origin=(10, 30), full_size=(200, 100))
+    units = field_y_units(torch.cat([a, b]))
+    torch.testing.assert_close(units, torch.tensor([79 / 119, 99 / 199]), atol=1e-5, rtol=0)
+    assert float(field_y_units(field_coords(2, 1, 56, "cpu"))[0]) == 1.0  # a one-row crop: no y step to read

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["field_coords", "field_r2", "field_y_unit"]
+__all__ = ["field_coords", "field_r2", "field_y_units"]
 
 
 def field_coords(batch_size: int, H: int, W: int, device: torch.device | str = "cpu", origin: tuple[int, int] = (0, 0), full_size: tuple[int, int] | None = None) -> Tensor:
@@ -28,13 +28,15 @@ def field_r2(field: Tensor) -> Tensor:
     return (field[:, :1] ** 2 + field[:, 1:2] ** 2) / 2.0
 
 
-def field_y_unit(field: Tensor) -> float:
-    """The full image's half-height in units of its half-width, ``(H_f - 1) / (W_f - 1)``, read from the field
-    coordinates' steps per pixel (``2 / (W_f - 1)`` along x, ``2 / (H_f - 1)`` along y): field y times it is
-    the same point's y on the sensor in the unit of field x. ``field``: (B, 2, H, W) of one frame size (the
-    first item is read); 1 when a crop is under 2 px along either axis."""
-    if field.shape[-1] < 2 or field.shape[-2] < 2:
-        return 1.0
-    step_x = float(field[0, 0, 0, 1] - field[0, 0, 0, 0])
-    step_y = float(field[0, 1, 1, 0] - field[0, 1, 0, 0])
-    return step_x / step_y if step_y > 0 else 1.0
+def field_y_units(field: Tensor) -> Tensor:
+    """(B,) each item's full image half-height in units of its half-width, ``(H_f - 1) / (W_f - 1)``, read from
+    the field coordinates' steps per pixel (``2 / (W_f - 1)`` along x, ``2 / (H_f - 1)`` along y): field y times
+    it is the same point's y on the sensor in the unit of field x. ``field``: (B, 2, H, W); 1 where a crop is
+    under 2 px along either axis."""
+    B, _, H, W = field.shape
+    ones = field.new_ones(B)
+    if W < 2 or H < 2:
+        return ones
+    step_x = field[:, 0, 0, 1] - field[:, 0, 0, 0]
+    step_y = field[:, 1, 1, 0] - field[:, 1, 0, 0]
+    return torch.where(step_y > 0, step_x / step_y.clamp(min=1e-12), ones)

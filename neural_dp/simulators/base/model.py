@@ -13,7 +13,7 @@ from dp5k_learn.batch import DPBatch
 
 from ..interface import DPSimulator
 from .cache import TensorCache
-from .field import field_coords, field_y_unit, field_r2
+from .field import field_coords, field_r2, field_y_units
 from .fit import fit_parameters
 from .psf import PSFShape, half_disc_kernels, stack_centred
 from .render import RenderConfig, render_layers
@@ -39,10 +39,12 @@ are blended linearly in x, and the right view at x is the left view's mirror at 
 mirror-symmetric about the field's centre line, not about each view's split)."""
 
 FIELD_NODES_Y: tuple[float, float, float] = (-1.0, 0.0, 1.0)
-"""Field y (in [-1, 1], the field's own normalisation) at which a PSF that also changes along y
-(:attr:`Component.field_y_dependent`) is rendered: the views are then blended bilinearly over the 3 x 3 nodes of
+"""Field y at which a PSF that also changes along y (:attr:`Component.field_y_dependent`) is rendered, as
+multiples of the batch's largest half-height on the sensor (:func:`~.field.field_y_units`; for a batch of one
+frame size, its field y in [-1, 1]): the views are then blended bilinearly over the 3 x 3 nodes of
 :data:`FIELD_NODES_X` x :data:`FIELD_NODES_Y` (the right view at (x, y) is the left view's mirror at (-x, y): a
-left-right mirror keeps y)."""
+left-right mirror keeps y). Crops of frames of different aspects share the nodes, each blended at its own
+sensor y."""
 
 FIELD_NODES_R2: tuple[float, float, float] = (0.0, 0.5, 1.0)
 """Squared field radii (corner = 1) at which a field-dependent PSF is rendered; views in between are blended
@@ -301,8 +303,13 @@ class BaseModel(DPSimulator):
 
         wx = tent(field[:, :1].clamp(-1.0, 1.0))
         along_y = any(c.field_y_dependent for c in self.components)
-        wy = tent(field[:, 1:2].clamp(-1.0, 1.0)) if along_y else {0.0: None}
-        y_unit = field_y_unit(field) if along_y else 0.0
+        span = 0.0
+        if along_y:  # nodes at sensor y = -span, 0, span (units of the half-width), shared by frames of any aspect
+            units = field_y_units(field)
+            span = float(units.max())
+            wy = tent((field[:, 1:2] * (units / span).view(-1, 1, 1, 1)).clamp(-1.0, 1.0))
+        else:
+            wy = {0.0: None}
         nodes = [(x, y) for x in FIELD_NODES_X for y in wy]
         w = {(x, y): wx[x] if wy[y] is None else wx[x] * wy[y] for x, y in nodes}
         used = {n: bool((w[n] > 0).any()) for n in nodes}
@@ -316,7 +323,7 @@ class BaseModel(DPSimulator):
             if not views:
                 continue
             for c in self.components:
-                c.field_x, c.field_y = x, y * y_unit
+                c.field_x, c.field_y = x, y * span
             try:
                 renders[(x, y)] = render_layers(sharp, coc, valid, self._kernel_fn(x * x), self.config, views)
             finally:
