@@ -16,7 +16,7 @@ from .data import Sample
 
 EXPLAIN = {
     "lr_gain_imbalance": "the left and right views differ in brightness: L/R ratio {lr_ratio_center:.3f} at the centre, {lr_ratio_min:.3f}..{lr_ratio_max:.3f} over the field the fit pairs cover (x {field_x0:+.2f}..{field_x1:+.2f}, y {field_y0:+.2f}..{field_y1:+.2f})",
-    "field_varying_psf": "the blur changes across the field: CoC grows by {coc_growth_at_corner:+.1%} at the corner, the split leaks {edge_leak:.3f} x |x| toward the edges, the split line moves {split_shift:+.2f} pupil radii per unit field x and the pupil is clipped {vignetting:+.2f} pupil radii per unit field x (cat's eye)",
+    "field_varying_psf": "the blur changes across the field: CoC grows by {coc_growth_at_corner:+.1%} at the corner, the split leaks {edge_leak:.3f} x |x| toward the edges, the split line moves {split_shift:+.2f} pupil radii per unit field x and the pupil is clipped {vignetting:+.2f} pupil radii per unit field radius along the field vector (cat's eye)",
     "chromatic_defocus": "the colour channels focus differently: focal length shift red {focal_shift_r_mm:+.4f} mm, blue {focal_shift_b_mm:+.4f} mm versus green",
     "disparity_scale": "the L/R disparity is {disparity_scale:.3f} x the ideal half-aperture disparity (crosstalk {crosstalk:.3f})",
     "focus_offset": "the lens focuses elsewhere than recorded: 1/F' = 1/({focus_factor:.3f} F) - {focus_shift_dpt:+.3f} dpt ({focus_offset_mm:+.0f} mm at the mean recorded distance)",
