@@ -13,7 +13,8 @@ lr_gain_imbalance     L/R ratio rho: ln rho = a0 + ax x + ay y + axx x^2 + ayy y
 field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodiode leak: the left view
                       receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
                       cat's-eye vignetting: at field (x, y) the pupil cut by a unit circle centred ``vignetting``
-                      (x, y H/W) pupil radii, along the field vector (each view's brightness corrected back); the
+                      (x, y a) pupil radii, a = (H - 1) / (W - 1), along the field vector (each view's brightness
+                      corrected back); the
                       split line moved to pupil
                       x = ``split_shift`` x (each view's PSF and share of the light change, :func:`split_share`)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
@@ -112,8 +113,8 @@ class FieldVaryingPSF(Component):
       its light, changes: off axis in x the clipped half's blur narrows and its disparity shrinks; off axis in y
       both halves lose their top or bottom). Its sign says which side the clipping element sits on. Until
       2026-12-06 the cut moved along x only: on ``aperture_dp``'s cat's-eye, whose stop moves along the field
-      vector, that left 43 % of the effect's signal unexplained (the cut's y part) and the effect at its
-      detection limit.
+      vector, 43 % of the effect's signal was out of its reach (the cut's y part; fitted, it left half) and the
+      effect sat at its detection limit.
     * ``split_shift``: the photodiodes' split line itself moves off axis (the microlens offset against the chief
       ray's angle): at field x it crosses the pupil at :math:`u_x = ` ``split_shift`` x pupil radii (the left
       photodiode takes :math:`u_x <` it). Each view's PSF is the part of the disc on its side of the line, and
