@@ -14,9 +14,8 @@ field_varying_psf     CoC x (1 + ``coc_growth_at_corner`` r^2); off-axis photodi
                       receives ``edge_leak`` max(0, -x) of the right view's light, mirrored on the right;
                       cat's-eye vignetting: at field (x, y) the pupil cut by a unit circle centred ``vignetting``
                       (x, y a) pupil radii, a = (H - 1) / (W - 1), along the field vector (each view's brightness
-                      corrected back); the
-                      split line moved to pupil
-                      x = ``split_shift`` x (each view's PSF and share of the light change, :func:`split_share`)
+                      corrected back); the split line moved to pupil x = ``split_shift`` x (each view's PSF and
+                      share of the light change, :func:`split_share`)
 chromatic_defocus     per-channel thin-lens focal length f + ``focal_shift_r_mm`` / f + ``focal_shift_b_mm``
                       with the sensor set for green (per-channel CoC from the depth map)
 disparity_scale       symmetric photodiode crosstalk kappa: L' = (1-kappa) L + kappa R (and mirrored);

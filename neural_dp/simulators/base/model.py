@@ -277,7 +277,7 @@ class BaseModel(DPSimulator):
             sharp = c.sharp(sharp, batch)
         valid = batch.valid
         if any(c.field_x_dependent for c in self.components):
-            return self._render_along_x(sharp, coc, valid, field)
+            return self._render_over_field(sharp, coc, valid, field)
         if any(c.field_dependent and c.changes_psf for c in self.components):
             renders = [render_layers(sharp, coc, valid, self._kernel_fn(r2), self.config) for r2 in FIELD_NODES_R2]
             r2 = field_r2(field).clamp(0.0, 1.0)
@@ -290,7 +290,7 @@ class BaseModel(DPSimulator):
             left, right = render_layers(sharp, coc, valid, self._kernel_fn(0.0), self.config)
         return left, right
 
-    def _render_along_x(self, sharp: Tensor, coc: Tensor, valid: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+    def _render_over_field(self, sharp: Tensor, coc: Tensor, valid: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
         """Render at :data:`FIELD_NODES_X` (and :data:`FIELD_NODES_Y` where a component's PSF also changes along
         y) and blend linearly in field x (bilinearly in x and y); the right view at node (x, y) is the right output
         of the render at node (-x, y). A node's view that no pixel of the batch weighs is not rendered (a crop
@@ -307,11 +307,11 @@ class BaseModel(DPSimulator):
         if along_y:  # nodes at sensor y = -span, 0, span (units of the half-width), shared by frames of any aspect
             units = field_y_units(field)
             span = float(units.max())
-            wy = tent((field[:, 1:2] * (units / span).view(-1, 1, 1, 1)).clamp(-1.0, 1.0))
+            wy: dict[float, Tensor | float] = tent((field[:, 1:2] * (units / span).view(-1, 1, 1, 1)).clamp(-1.0, 1.0))
         else:
-            wy = {0.0: None}
+            wy = {0.0: 1.0}
         nodes = [(x, y) for x in FIELD_NODES_X for y in wy]
-        w = {(x, y): wx[x] if wy[y] is None else wx[x] * wy[y] for x, y in nodes}
+        w = {(x, y): wx[x] * wy[y] for x, y in nodes}
         used = {n: bool((w[n] > 0).any()) for n in nodes}
 
         def mirror(n: tuple[float, float]) -> tuple[float, float]:
