@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-
-from dp5k_learn.metrics import gaussian_window
 
 __all__ = ["PSFShape", "half_disc_kernels", "full_disc_kernels", "stack_centred"]
 
@@ -73,27 +73,58 @@ def _fine_supersample(n: int) -> int:
     return next(ss for n_max, ss in FINE_SUPERSAMPLE_BY_KERNEL_PX if n <= n_max)
 
 
-def _band_matrix(n_in: int, taps: Tensor, step: int, offset: int, n_out: int) -> Tensor:
+def _band_matrix(n_in: int, taps: np.ndarray, step: int, offset: int, n_out: int) -> np.ndarray:
     """(n_in, n_out) matrix ``M[j, i] = taps[j - i step + offset]`` (0 outside the taps): ``x @ M`` is the
     correlation of the rows of ``x`` with ``taps`` sampled every ``step`` samples, starting ``offset`` samples
     before the first one (zero outside ``x``). Two such products apply a separable filter as matrix products,
     which are far cheaper than ``conv2d`` on the fine grids here."""
-    j = torch.arange(n_in, device=taps.device).view(-1, 1)
-    i = torch.arange(n_out, device=taps.device).view(1, -1)
+    j = np.arange(n_in).reshape(-1, 1)
+    i = np.arange(n_out).reshape(1, -1)
     idx = j - i * step + offset
-    inside = (idx >= 0) & (idx < taps.numel())
-    return torch.where(inside, taps[idx.clamp(0, taps.numel() - 1)], taps.new_zeros(()))
+    inside = (idx >= 0) & (idx < taps.size)
+    return np.where(inside, taps[np.clip(idx, 0, taps.size - 1)], np.zeros((), dtype=taps.dtype))
 
 
-def _soften(w: Tensor, sigma_fine: float) -> Tensor:
-    """(N, N) fine-grid PSF convolved with a Gaussian of ``sigma_fine`` fine samples (zero outside);
-    unchanged below 0.3 samples."""
-    if sigma_fine <= 0.3:
-        return w
+def _gaussian_taps(sigma_fine: float) -> np.ndarray:
+    """Normalised Gaussian of standard deviation ``sigma_fine`` samples over ``2 ceil(3 sigma) + 1`` taps, float32."""
     r = int(math.ceil(3 * sigma_fine))
-    g = gaussian_window(2 * r + 1, sigma_fine, device=w.device)
-    band = _band_matrix(w.shape[-1], g, 1, r, w.shape[-1])
-    return band.T @ w @ band
+    x = np.arange(2 * r + 1, dtype=np.float32) - np.float32(r)
+    g = np.exp(-(x**2) / np.float32(2 * sigma_fine**2))
+    return g / g.sum()
+
+
+@functools.lru_cache(maxsize=256)
+def _pixel_projections(n: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n ss, n) float32 matrices taking a fine grid to pixels along one axis: the 2-px tent sampled at pixel
+    centres and the pixel-area sum over ``ss`` samples (divided by ``ss``), see :func:`_to_pixels`."""
+    tent = ((1.0 - np.abs(np.arange(-(ss - 1), ss, dtype=np.float32)) / ss) / ss).astype(np.float32)  # (2 ss - 1,)
+    tent_band = _band_matrix(n * ss, tent, ss, (ss - 1) // 2, n)
+    box_band = (np.arange(n * ss).reshape(-1, 1) // ss == np.arange(n).reshape(1, -1)).astype(np.float32) / np.float32(ss)
+    return tent_band, box_band
+
+
+def _to_pixels(w: np.ndarray, n: int, ss: int, beta: float, sigma_fine: float = 0.0) -> Tensor:
+    """A fine-grid PSF (n ss, n ss) softened by a Gaussian of ``sigma_fine`` fine samples (zero outside; none
+    below 0.3 samples) and taken to (n, n) pixel weights summing to 1: ``(1 - beta)`` tent (sampled at pixel
+    centres) ``+ beta`` box (pixel-area mean); see :func:`_half_disc_kernel`.
+
+    The softening and the sampling are separable, so both are one (n ss, n) matrix per axis, ``P = G T``
+    (``G`` the Gaussian's band, ``T`` the tent's or the box's): ``P^T w P`` costs (n ss)^2 n, not (n ss)^3."""
+    tent_band, box_band = _pixel_projections(n, ss)
+    if beta > 0:
+        proj = np.concatenate([tent_band, box_band], axis=1)
+    else:
+        proj = tent_band
+    if sigma_fine > 0.3:
+        g = _gaussian_taps(sigma_fine)
+        r = (g.size - 1) // 2
+        proj = _band_matrix(n * ss, g, 1, r, n * ss) @ proj
+    right = w @ proj  # (n ss, n or 2 n)
+    out = proj[:, :n].T @ right[:, :n]
+    if beta > 0:
+        out = np.float32(1.0 - beta) * out + np.float32(beta) * (proj[:, n:].T @ right[:, n:])
+    out = out / max(float(out.sum()), 1e-12)
+    return torch.from_numpy(np.ascontiguousarray(out, dtype=np.float32))
 
 
 _KERNEL_CACHE: "OrderedDict[tuple, Tensor]" = OrderedDict()
@@ -174,56 +205,53 @@ def _half_disc_kernel(coc_px: float, scale: float, softness_px: float, rim2: flo
     Returns:
         (n, n) float tensor, n odd, centred; the right PSF is ``flip(-1)`` of it.
     """
-    coc, scale_t, soft, a2, a4, split_t = (torch.tensor(v, device=device, dtype=torch.float32)
-                                            for v in (coc_px, scale, softness_px, rim2, rim4, split))
+    f32 = np.float32
+    coc, a2, a4 = f32(coc_px), f32(rim2), f32(rim4)
     beta = min(max(float(pixel_box), 0.0), 1.0)
-    R = coc.abs() * scale_t / 2  # px
-    sigma = soft.clamp(min=0.0)
-    half = int(math.ceil(float(R + 3 * sigma))) + 2
+    R = f32(abs(coc) * f32(scale) / f32(2))  # px
+    sigma = max(float(f32(softness_px)), 0.0)
+    half = int(math.ceil(float(R) + 3 * sigma)) + 2
     n = 2 * half + 1
     ss = max(_fine_supersample(n), supersample | 1)
-    fine = (torch.arange(n * ss, device=device, dtype=torch.float32) + 0.5) / ss - n / 2.0  # fine sample centres
-    fy, fx = torch.meshgrid(fine, fine, indexing="ij")
-    rho = torch.sqrt(fx**2 + fy**2)  # (N, N)
-    Reff = R.clamp(min=0.5 / ss)
-    disc = ((Reff - rho) * ss + 0.5).clamp(0.0, 1.0)
-    q = (rho / Reff).clamp(max=1.0) ** 2
-    prof_w = (1.0 + a2 * q + a4 * q * q).clamp(min=0.0)
+    fx, fy, rho = _fine_grid(n, ss)  # (N, N) fine sample centres (px) and their radius
+    Reff = max(R, f32(0.5 / ss))
+    disc = np.clip((Reff - rho) * f32(ss) + f32(0.5), 0.0, 1.0)
+    q = np.minimum(rho / Reff, f32(1.0)) ** 2
+    prof_w = np.maximum(f32(1.0) + a2 * q + a4 * q * q, f32(0.0))
     sign = 1.0 if coc_px >= 0 else -1.0
-    line = float(split_dx) * float(R)  # px: where the split line lands (x sign(c))
-    left_half = (fx * sign < line).float() + 0.5 * (fx * sign == line).float()
-    sk = split_t * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
-    w = _soften(disc * prof_w * ((1.0 - sk) / 2.0 + sk * left_half), float(sigma) * ss)
-    return _to_pixels(w, n, ss, beta)
-
-
-def _to_pixels(w: Tensor, n: int, ss: int, beta: float) -> Tensor:
-    """A fine-grid PSF (n ss, n ss) as (n, n) pixel weights summing to 1: ``(1 - beta)`` tent (sampled at pixel
-    centres) ``+ beta`` box (pixel-area sum); see :func:`_half_disc_kernel`."""
-    device = w.device
-    tent = (1.0 - torch.arange(-(ss - 1), ss, device=device, dtype=torch.float32).abs() / ss) / ss  # (2 ss - 1,)
-    tent_band = _band_matrix(n * ss, tent, ss, (ss - 1) // 2, n)  # the tent sampled at pixel centres
-    out = tent_band.T @ w @ tent_band
-    if beta > 0:  # pixel i holds the fine samples i ss .. i ss + ss - 1, centred on its centre like the tent's
-        box = w.reshape(n, ss, n, ss).sum(dim=(1, 3)) / (ss * ss)
-        out = (1.0 - beta) * out + beta * box
-    return out / out.sum().clamp(min=1e-12)
+    line = f32(float(split_dx) * float(R))  # px: where the split line lands (x sign(c))
+    xs = fx * f32(sign)
+    left_half = (xs < line).astype(np.float32) + f32(0.5) * (xs == line).astype(np.float32)
+    sk = f32(split) * R / Reff  # a disc below the fine grid's resolution keeps its exact centroid
+    w = disc * prof_w * ((f32(1.0) - sk) / f32(2.0) + sk * left_half)
+    return _to_pixels(w, n, ss, beta, sigma * ss).to(device)
 
 
 SA_PUPIL_SAMPLES_MAX = 384
 """Most pupil samples per side of the pushforward grid (:func:`_pushforward_kernel`)."""
 
-_PUPIL_GRIDS: dict[tuple[int, str], tuple[Tensor, Tensor, Tensor]] = {}
+
+@functools.lru_cache(maxsize=64)
+def _fine_grid(n: int, ss: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, y, radius) of the (n ss)^2 fine sample centres of an n x n px kernel, px from its centre, float32."""
+    fine = ((np.arange(n * ss, dtype=np.float32) + np.float32(0.5)) / np.float32(ss) - np.float32(n / 2.0)).astype(np.float32)
+    fy, fx = np.meshgrid(fine, fine, indexing="ij")
+    return fx, fy, np.sqrt(fx**2 + fy**2)
 
 
-def _pupil_grid(m: int, device: torch.device | str) -> tuple[Tensor, Tensor, Tensor]:
-    """(u_x, u_y, rho^2) on an m x m grid of pupil sample centres over [-1, 1]^2 (cached)."""
-    key = (m, str(device))
-    if key not in _PUPIL_GRIDS:
-        g = (torch.arange(m, device=device, dtype=torch.float32) + 0.5) / m * 2 - 1
-        uy, ux = torch.meshgrid(g, g, indexing="ij")
-        _PUPIL_GRIDS[key] = (ux, uy, ux**2 + uy**2)
-    return _PUPIL_GRIDS[key]
+@functools.lru_cache(maxsize=64)
+def _pupil_grid(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u_x, u_y, rho^2) of the centres of an m x m grid of pupil samples over [-1, 1]^2 that lie in the unit
+    disc (flat, float32)."""
+    g = ((np.arange(m, dtype=np.float32) + np.float32(0.5)) / np.float32(m) * np.float32(2) - np.float32(1)).astype(np.float32)
+    uy, ux = np.meshgrid(g, g, indexing="ij")
+    rho2 = ux**2 + uy**2
+    inside = rho2 <= 1.0
+    return ux[inside], uy[inside], rho2[inside]
+
+
+_RHO_ZONES = np.linspace(0.0, 1.0, 101)
+"""Pupil radii at which :func:`_pushforward_kernel` finds the largest landing radius."""
 
 
 def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: float, rim4: float, split: float,
@@ -245,38 +273,35 @@ def _pushforward_kernel(coc_px: float, scale: float, softness_px: float, rim2: f
     camera's per-view shading correction restores its brightness). ``split_dx`` moves the split line to
     :math:`u_x = ` ``split_dx``, as in :func:`_half_disc_kernel`.
     """
+    f32 = np.float32
     c = float(coc_px) * float(scale)
     a = float(sa_px)
-    rho_t = torch.linspace(0.0, 1.0, 101)
-    extent = float((rho_t * (c - a * (rho_t**2 - 0.6))).abs().max()) / 2  # px, largest landing radius
+    extent = float(np.abs(_RHO_ZONES * (c - a * (_RHO_ZONES**2 - 0.6))).max()) / 2  # px, largest landing radius
     sigma = max(float(softness_px), 0.0)
     beta = min(max(float(pixel_box), 0.0), 1.0)
     half = int(math.ceil(extent + 3 * sigma)) + 2
     n = 2 * half + 1
     ss = max(_fine_supersample(n), supersample | 1)
     m = int(min(SA_PUPIL_SAMPLES_MAX, max(32, math.ceil(2 * extent * ss * 1.5)))) & ~1  # even: none on u_x = 0
-    ux, uy, rho2 = _pupil_grid(m, device)
-    inside = (rho2 <= 1.0) & ((ux - clip_dx) ** 2 + (uy - clip_dy) ** 2 <= 1.0)
-    ux, uy, rho2 = ux[inside], uy[inside], rho2[inside]
-    left = (ux < split_dx).float()  # the left photodiode's part of the pupil
-    w = (1.0 + rim2 * rho2 + rim4 * rho2 * rho2).clamp(min=0.0) * ((1.0 - split) / 2.0 + split * left)
-    zone = c - a * (rho2 - 0.6)
+    ux, uy, rho2 = _pupil_grid(m)
+    if clip_dx or clip_dy:
+        cut = (ux - f32(clip_dx)) ** 2 + (uy - f32(clip_dy)) ** 2 <= 1.0
+        ux, uy, rho2 = ux[cut], uy[cut], rho2[cut]
+    left = (ux < f32(split_dx)).astype(np.float32)  # the left photodiode's part of the pupil
+    w = np.maximum(f32(1.0) + f32(rim2) * rho2 + f32(rim4) * rho2 * rho2, f32(0.0)) * ((f32(1.0) - f32(split)) / f32(2.0) + f32(split) * left)
+    zone = f32(c) - f32(a) * (rho2 - f32(0.6))
     N = n * ss
-    fx = (ux * zone / 2 + n / 2.0) * ss - 0.5  # fine-grid coordinates of the landing points
-    fy = (uy * zone / 2 + n / 2.0) * ss - 0.5
-    x0, y0 = fx.floor(), fy.floor()
+    fx = (ux * zone / f32(2) + f32(n / 2.0)) * f32(ss) - f32(0.5)  # fine-grid coordinates of the landing points
+    fy = (uy * zone / f32(2) + f32(n / 2.0)) * f32(ss) - f32(0.5)
+    x0, y0 = np.floor(fx), np.floor(fy)
     tx, ty = fx - x0, fy - y0
-    x0, y0 = x0.long(), y0.long()
-    idx, wts = [], []
-    for dy, wy in ((0, 1 - ty), (1, ty)):
-        for dx, wx in ((0, 1 - tx), (1, tx)):
-            xi, yi = x0 + dx, y0 + dy
-            ok = (xi >= 0) & (xi < N) & (yi >= 0) & (yi < N)
-            idx.append((yi * N + xi)[ok])
-            wts.append((w * wx * wy)[ok])
-    fine = torch.bincount(torch.cat(idx), torch.cat(wts), minlength=N * N).float()
-    fine = _soften(fine.view(N, N), sigma * ss)
-    return _to_pixels(fine, n, ss, beta)
+    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+    # bilinear splat: the four neighbours of every landing point (all inside the grid: the kernel's half-width
+    # exceeds the largest landing radius by at least 2 px)
+    idx = np.concatenate([y0 * N + x0, y0 * N + x0 + 1, (y0 + 1) * N + x0, (y0 + 1) * N + x0 + 1])
+    wts = np.concatenate([w * (1 - tx) * (1 - ty), w * tx * (1 - ty), w * (1 - tx) * ty, w * tx * ty])
+    fine = np.bincount(idx, wts, minlength=N * N).astype(np.float32).reshape(N, N)
+    return _to_pixels(fine, n, ss, beta, sigma * ss).to(device)
 
 
 def split_share(split_dx: Tensor) -> Tensor:
