@@ -111,16 +111,24 @@ def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend(monkeyp
     from neural_dp.simulators.base import model as model_mod
 
     asked: dict[float, tuple[str, ...]] = {}
-    real = model_mod.render_layers
+    seen: list[float] = []  # the field x the component's PSF was asked at, as the kernels are built
+    shape = fvp.shape
+    monkeypatch.setattr(fvp, "shape", lambda *a: seen.append(fvp.field_x) or shape(*a))
+    real = model_mod.render_layers_multi
 
-    def spy(*args, **kw):
-        asked[fvp.field_x] = args[5] if len(args) > 5 else kw.get("views", ("l", "r"))
-        return real(*args, **kw)
+    def spy(sharp, coc, valid, kernel_sets, cfg):
+        def recording(fn, views):
+            def at(nodes):
+                out = fn(nodes)
+                asked[seen[-1]] = views  # the field node the kernels were built at (the model sets it)
+                return out
+            return at
+        return real(sharp, coc, valid, [(recording(fn, views), views) for fn, views in kernel_sets], cfg)
 
-    monkeypatch.setattr(model_mod, "render_layers", spy)
+    monkeypatch.setattr(model_mod, "render_layers_multi", spy)
     with torch.enable_grad():
         got = model.render_layers_only(b, field)
-    monkeypatch.setattr(model_mod, "render_layers", real)
+    monkeypatch.setattr(model_mod, "render_layers_multi", real)
     assert asked == {-1.0: ("r",), 0.0: ("l", "r"), 1.0: ("l",)}  # four views of six
     coc = fvp.coc(b.coc_px.float(), b, field)
     from neural_dp.simulators.base.sharp import sharp_radiance
@@ -157,16 +165,24 @@ def test_a_cut_pupil_renders_as_the_bilinear_blend_of_the_field_grid_nodes_it_we
     fvp.params.update(vignetting=0.5)
     model = BaseModel(rim_softness_px=0.6, components=[fvp])
     asked: dict[tuple[float, float], tuple[str, ...]] = {}
-    real = model_mod.render_layers
+    seen: list[tuple[float, float]] = []  # the field node the component's PSF was asked at, as the kernels are built
+    shape = fvp.shape
+    monkeypatch.setattr(fvp, "shape", lambda *a: seen.append((fvp.field_x, round(fvp.field_y, 4))) or shape(*a))
+    real = model_mod.render_layers_multi
 
-    def spy(*args, **kw):
-        asked[(fvp.field_x, round(fvp.field_y, 4))] = args[5] if len(args) > 5 else kw.get("views", ("l", "r"))
-        return real(*args, **kw)
+    def spy(sharp, coc, valid, kernel_sets, cfg):
+        def recording(fn, views):
+            def at(nodes):
+                out = fn(nodes)
+                asked[seen[-1]] = views
+                return out
+            return at
+        return real(sharp, coc, valid, [(recording(fn, views), views) for fn, views in kernel_sets], cfg)
 
-    monkeypatch.setattr(model_mod, "render_layers", spy)
+    monkeypatch.setattr(model_mod, "render_layers_multi", spy)
     with torch.enable_grad():
         got = model.render_layers_only(b, field)
-    monkeypatch.setattr(model_mod, "render_layers", real)
+    monkeypatch.setattr(model_mod, "render_layers_multi", real)
     up, mid = round(-unit, 4), 0.0
     assert asked == {(-1.0, up): ("r",), (0.0, up): ("l", "r"), (1.0, up): ("l",),
                      (-1.0, mid): ("r",), (0.0, mid): ("l", "r"), (1.0, mid): ("l",)}

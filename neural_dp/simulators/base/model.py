@@ -16,7 +16,7 @@ from .cache import TensorCache
 from .field import field_coords, field_r2, field_y_units
 from .fit import fit_parameters
 from .psf import PSFShape, half_disc_kernels, stack_centred
-from .render import RenderConfig, render_layers
+from .render import RenderConfig, render_layers, render_layers_multi
 from .sharp import sharp_radiance
 
 __all__ = ["Component", "BaseModel", "FIELD_NODES_R2", "select_pairs"]
@@ -227,6 +227,22 @@ class BaseModel(DPSimulator):
 
         return fn
 
+    def _kernel_fn_at(self, x: float, y: float):
+        """:meth:`_kernel_fn` at field node (x, y) (y in units of the half-width, :attr:`Component.field_y`): the
+        components see that node while the kernels are built."""
+        fn = self._kernel_fn(x * x)
+
+        def at(nodes: Tensor) -> Tensor:
+            for c in self.components:
+                c.field_x, c.field_y = x, y
+            try:
+                return fn(nodes)
+            finally:
+                for c in self.components:
+                    c.field_x = c.field_y = 0.0
+
+        return at
+
     def render_state(self) -> tuple:
         """Everything the layered render reads of the model, hashable: base parameters, discretisation and each
         component's :meth:`Component.render_state`."""
@@ -279,7 +295,7 @@ class BaseModel(DPSimulator):
         if any(c.field_x_dependent for c in self.components):
             return self._render_over_field(sharp, coc, valid, field)
         if any(c.field_dependent and c.changes_psf for c in self.components):
-            renders = [render_layers(sharp, coc, valid, self._kernel_fn(r2), self.config) for r2 in FIELD_NODES_R2]
+            renders = render_layers_multi(sharp, coc, valid, [(self._kernel_fn(r2), ("l", "r")) for r2 in FIELD_NODES_R2], self.config)
             r2 = field_r2(field).clamp(0.0, 1.0)
             w0 = (1 - 2 * r2).clamp(min=0)
             w2 = (2 * r2 - 1).clamp(min=0)
@@ -295,7 +311,8 @@ class BaseModel(DPSimulator):
         y) and blend linearly in field x (bilinearly in x and y); the right view at node (x, y) is the right output
         of the render at node (-x, y). A node's view that no pixel of the batch weighs is not rendered (a crop
         right of the centre needs the left view of node 1 and the right view of node -1, not the other two): the
-        same output, with fewer views."""
+        same output, with fewer views. All nodes are rendered in one :func:`render_layers_multi` call: the layer
+        decomposition is shared and only the kernels differ."""
         def tent(t: Tensor) -> dict[float, Tensor]:
             w = {-1.0: (-t).clamp(min=0), 1.0: t.clamp(min=0)}
             w[0.0] = 1 - w[-1.0] - w[1.0]
@@ -317,18 +334,13 @@ class BaseModel(DPSimulator):
         def mirror(n: tuple[float, float]) -> tuple[float, float]:
             return (-n[0] if n[0] else 0.0, n[1])
 
-        renders = {}
+        asked = {}
         for x, y in nodes:
             views = tuple(v for v, on in (("l", used[(x, y)]), ("r", used[mirror((x, y))])) if on)
-            if not views:
-                continue
-            for c in self.components:
-                c.field_x, c.field_y = x, y * span
-            try:
-                renders[(x, y)] = render_layers(sharp, coc, valid, self._kernel_fn(x * x), self.config, views)
-            finally:
-                for c in self.components:
-                    c.field_x = c.field_y = 0.0
+            if views:
+                asked[(x, y)] = (self._kernel_fn_at(x, y * span), views)
+        # one layer decomposition for every node: only the kernels differ between them
+        renders = dict(zip(asked, render_layers_multi(sharp, coc, valid, list(asked.values()), self.config)))
         left = sum(w[n] * renders[n][0] for n in nodes if used[n])
         right = sum(w[n] * renders[mirror(n)][1] for n in nodes if used[n])
         return left, right

@@ -7,14 +7,15 @@ between two CoC nodes and composites front to back, so that a near surface hides
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from ...kernels import add_full_convolution
 
-__all__ = ["RenderConfig", "render_layers", "NODE_SPACING_LADDER"]
+__all__ = ["RenderConfig", "render_layers", "render_layers_multi", "NODE_SPACING_LADDER"]
 
 
 @dataclass
@@ -165,63 +166,105 @@ def render_layers(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_fn, cfg: Ren
         left, right: (B, 3, H, W), each ``H * sharp`` (PSFs sum to 1; no factor 1/2 yet); None for a view not
         rendered.
     """
+    return render_layers_multi(sharp, coc, valid, [(kernel_fn, views)], cfg)[0]
+
+
+KernelSet = tuple[Callable[[Tensor], Tensor], tuple[str, ...]]
+"""A ``kernel_fn`` (as in :func:`render_layers`) and the views to render with it."""
+
+
+@dataclass
+class _Composite:
+    """One kernel set's front-to-back compositing state over a chunk of pairs (:func:`render_layers_multi`)."""
+
+    views: tuple[str, ...]
+    support: list[int]
+    psfs: list[Tensor]
+    per_channel: bool
+    acc: dict[str, Tensor] = field(default_factory=dict)
+    cov: dict[str, Tensor] = field(default_factory=dict)
+    trans: dict[str, Tensor] = field(default_factory=dict)
+    pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = field(default_factory=list)
+
+
+def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: Sequence[KernelSet], cfg: RenderConfig
+                        ) -> list[tuple[Tensor | None, Tensor | None]]:
+    """:func:`render_layers` of one scene with several kernel sets (a PSF that changes over the field, rendered
+    at each field node): the CoC nodes, the pixels' split between them and each node's layer are computed once
+    and blurred with every set's kernels. Each set's views are the same to the bit as :func:`render_layers` with
+    that set alone.
+
+    Returns:
+        one (left, right) per kernel set, each (B, 3, H, W) or None for a view the set does not render.
+    """
     B, _, H, W = sharp.shape
     if coc.shape[1] == 3 and bool((coc[:, 1:] == coc[:, :1]).all()):
         coc = coc[:, :1]  # one CoC for all colours (a chromatic defocus held at zero): the same render, 4 channels not 6
     nodes = _nodes(coc, valid, cfg)
     K = nodes.shape[0]
-    kl = kernel_fn(nodes)  # (K, Ck, n, n)
-    Ck, n = kl.shape[1], kl.shape[-1]
-    support = [_support(kl[k]) for k in range(K)]
-    per_channel = Ck == 3 or coc.shape[1] == 3
-    nc = 3 if per_channel else 1
     t = _fractional_index(coc, nodes)  # (B, Cc, H, W)
     node_c = [float(c) for c in nodes]
-    psfs = [_view_psfs(kl[k], support[k], 3 + nc, views) for k in range(K)]
+    plans = []
+    for kernel_fn, views in kernel_sets:
+        kl = kernel_fn(nodes)  # (K, Ck, n, n)
+        support = [_support(kl[k]) for k in range(K)]
+        per_channel = kl.shape[1] == 3 or coc.shape[1] == 3
+        nc = 3 if per_channel else 1
+        plans.append((tuple(views), support, [_view_psfs(kl[k], support[k], 3 + nc, views) for k in range(K)], per_channel))
 
     def occludes(c_near: float, c_far: float) -> bool:
         return c_far - c_near > max(cfg.occlude_min_px, cfg.occlude_rel * max(abs(c_near), abs(c_far)))
 
-    outs = []
+    outs: list[list[tuple[Tensor | None, Tensor | None]]] = [[] for _ in plans]
     for b0 in range(0, B, cfg.chunk):
         s = sharp[b0 : b0 + cfg.chunk]
         tt = t[b0 : b0 + cfg.chunk]
         nb = s.shape[0]
         boxes = _node_boxes(tt, K)
-        acc = {v: torch.zeros_like(s) for v in views}
-        cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in views}
-        trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in views}
-        pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = []
+        states = []
+        for views, support, psfs, per_channel in plans:
+            nc = 3 if per_channel else 1
+            st = _Composite(views, support, psfs, per_channel)
+            st.acc = {v: torch.zeros_like(s) for v in views}
+            st.cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in views}
+            st.trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in views}
+            states.append(st)
         for k in range(K):
             if k not in boxes:
                 continue
-            group = [p for p in pending if occludes(p[0], node_c[k])]
-            if group:
-                _occlude(trans, group)
-                pending = [p for p in pending if not occludes(p[0], node_c[k])]
             y0, y1, x0, x1 = boxes[k]
-            sup = support[k]
             m = (1.0 - (tt[..., y0:y1, x0:x1] - k).abs()).clamp(min=0.0)  # (nb, Cc, h, w) soft membership
             occupied = (m > 0).flatten(0, 1).any(0)
-            m = m.expand(nb, 3, *m.shape[-2:]) if per_channel else m
-            sig = torch.cat([s[..., y0:y1, x0:x1] * m, m], dim=1)  # (nb, 3 + nc, h, w)
-            full = sig.new_zeros(nb, psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
-            add_full_convolution(full, 0, 0, sig, psfs[k], occupied)
-            # the blur covers the box grown by the support, clipped to the frame
-            ry0, ry1, rx0, rx1 = max(y0 - sup, 0), min(y1 + sup, H), max(x0 - sup, 0), min(x1 + sup, W)
-            full = full[..., ry0 - (y0 - sup) : ry1 - (y0 - sup), rx0 - (x0 - sup) : rx1 - (x0 - sup)]
-            reg = (ry0, ry1, rx0, rx1)
-            alphas = {}
-            for v in views:
-                blurred = full[:, 0 if v == views[0] else -1]
-                col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
-                tr = trans[v][..., ry0:ry1, rx0:rx1]
-                acc[v][..., ry0:ry1, rx0:rx1] += tr * col
-                cov[v][..., ry0:ry1, rx0:rx1] += tr * alpha
-                alphas[v] = alpha
-            pending.append((node_c[k], reg, alphas))
-        outs.append(tuple(acc[v] / cov[v].clamp(min=1e-6) if v in views else None for v in ("l", "r")))
-    return tuple(torch.cat([o[i] for o in outs]) if v in views else None for i, v in enumerate(("l", "r")))  # type: ignore[return-value]
+            sigs: dict[bool, Tensor] = {}
+            for st in states:
+                group = [p for p in st.pending if occludes(p[0], node_c[k])]
+                if group:
+                    _occlude(st.trans, group)
+                    st.pending = [p for p in st.pending if not occludes(p[0], node_c[k])]
+                if st.per_channel not in sigs:
+                    mm = m.expand(nb, 3, *m.shape[-2:]) if st.per_channel else m
+                    sigs[st.per_channel] = torch.cat([s[..., y0:y1, x0:x1] * mm, mm], dim=1)  # (nb, 3 + nc, h, w)
+                sig = sigs[st.per_channel]
+                nc = sig.shape[1] - 3
+                sup = st.support[k]
+                full = sig.new_zeros(nb, st.psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
+                add_full_convolution(full, 0, 0, sig, st.psfs[k], occupied)
+                # the blur covers the box grown by the support, clipped to the frame
+                ry0, ry1, rx0, rx1 = max(y0 - sup, 0), min(y1 + sup, H), max(x0 - sup, 0), min(x1 + sup, W)
+                full = full[..., ry0 - (y0 - sup) : ry1 - (y0 - sup), rx0 - (x0 - sup) : rx1 - (x0 - sup)]
+                alphas = {}
+                for v in st.views:
+                    blurred = full[:, 0 if v == st.views[0] else -1]
+                    col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
+                    tr = st.trans[v][..., ry0:ry1, rx0:rx1]
+                    st.acc[v][..., ry0:ry1, rx0:rx1] += tr * col
+                    st.cov[v][..., ry0:ry1, rx0:rx1] += tr * alpha
+                    alphas[v] = alpha
+                st.pending.append((node_c[k], (ry0, ry1, rx0, rx1), alphas))
+        for out, st in zip(outs, states):
+            out.append(tuple(st.acc[v] / st.cov[v].clamp(min=1e-6) if v in st.views else None for v in ("l", "r")))
+    return [tuple(torch.cat([o[i] for o in out]) if v in st_views else None for i, v in enumerate(("l", "r")))  # type: ignore[misc]
+            for out, (st_views, *_rest) in zip(outs, plans)]
 
 
 def _view_psfs(kernel: Tensor, support: int, channels: int, views: tuple[str, ...] = ("l", "r")) -> Tensor:
