@@ -111,20 +111,23 @@ def _to_pixels(w: np.ndarray, n: int, ss: int, beta: float, sigma_fine: float = 
     The softening and the sampling are separable, so both are one (n ss, n) matrix per axis, ``P = G T``
     (``G`` the Gaussian's band, ``T`` the tent's or the box's): ``P^T w P`` costs (n ss)^2 n, not (n ss)^3."""
     tent_band, box_band = _pixel_projections(n, ss)
-    if beta > 0:
-        proj = np.concatenate([tent_band, box_band], axis=1)
-    else:
-        proj = tent_band
+    proj = np.concatenate([tent_band, box_band], axis=1) if beta > 0 else tent_band
     if sigma_fine > 0.3:
         g = _gaussian_taps(sigma_fine)
         r = (g.size - 1) // 2
-        proj = _band_matrix(n * ss, g, 1, r, n * ss) @ proj
-    right = w @ proj  # (n ss, n or 2 n)
-    out = proj[:, :n].T @ right[:, :n]
+        proj = _matmul(_band_matrix(n * ss, g, 1, r, n * ss), proj)
+    right = _matmul(w, proj)  # (n ss, n or 2 n)
+    out = _matmul(proj[:, :n].T, right[:, :n])
     if beta > 0:
-        out = np.float32(1.0 - beta) * out + np.float32(beta) * (proj[:, n:].T @ right[:, n:])
+        out = np.float32(1.0 - beta) * out + np.float32(beta) * _matmul(proj[:, n:].T, right[:, n:])
     out = out / max(float(out.sum()), 1e-12)
     return torch.from_numpy(np.ascontiguousarray(out, dtype=np.float32))
+
+
+def _matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` by PyTorch, on the threads it is given (``dp5k diagnose --threads``; numpy's BLAS would take every
+    core, which costs more CPU than it saves on matrices this small and oversubscribes parallel runs)."""
+    return torch.from_numpy(np.ascontiguousarray(a)).matmul(torch.from_numpy(np.ascontiguousarray(b))).numpy()
 
 
 _KERNEL_CACHE: "OrderedDict[tuple, Tensor]" = OrderedDict()
