@@ -7,6 +7,7 @@ between two CoC nodes and composites front to back, so that a near surface hides
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -61,10 +62,16 @@ def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
     v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
     if v.numel() == 0:
         v = coc.reshape(-1)
-    lo, hi = float(v.min()), float(v.max())
+    lo, hi = (float(x) for x in torch.aminmax(v))
+    return torch.tensor(_node_grid(lo, hi, cfg.node_step_px, cfg.node_rel_step, cfg.max_nodes), device=coc.device, dtype=torch.float32)
+
+
+@functools.lru_cache(maxsize=1024)
+def _node_grid(lo: float, hi: float, node_step_px: float, node_rel_step: float, max_nodes: int) -> tuple[float, ...]:
+    """The nodes of :func:`_nodes` for the CoC range [lo, hi] px (cached: a fit renders the same range again)."""
     grid: list[float] = []
     for f in NODE_SPACING_LADDER:
-        step, rel = cfg.node_step_px * f, cfg.node_rel_step * f
+        step, rel = node_step_px * f, node_rel_step * f
         grid = _node_side(max(hi, 0.0), step, rel)
         neg = _node_side(max(-lo, 0.0), step, rel)
         grid = [-x for x in reversed(neg[1:])] + grid
@@ -72,9 +79,9 @@ def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
         i0 = max(0, max((i for i, x in enumerate(grid) if x <= lo), default=0))
         i1 = min(len(grid) - 1, min((i for i, x in enumerate(grid) if x >= hi), default=len(grid) - 1))
         grid = grid[i0 : max(i1, i0 + 1) + 1]
-        if len(grid) <= cfg.max_nodes:
+        if len(grid) <= max_nodes:
             break
-    return torch.tensor(grid, device=coc.device, dtype=torch.float32)
+    return tuple(grid)
 
 
 def _node_side(extent: float, step: float, rel: float) -> list[float]:
@@ -87,13 +94,18 @@ def _node_side(extent: float, step: float, rel: float) -> list[float]:
 
 def _support(k: Tensor, tol: float = 1e-7) -> int:
     """Half-width (px) of the centred square holding every entry of ``k`` (..., n, n) above ``tol``."""
-    n = k.shape[-1]
+    return _supports(k[None], tol)[0]
+
+
+def _supports(kl: Tensor, tol: float = 1e-7) -> list[int]:
+    """:func:`_support` of each of K kernels ``kl`` (K, ..., n, n), in one pass."""
+    K, n = kl.shape[0], kl.shape[-1]
     h = n // 2
-    nz = (k.abs() > tol).reshape(-1, n, n).any(0)
-    ys, xs = torch.nonzero(nz, as_tuple=True)
-    if ys.numel() == 0:
-        return 0
-    return int(max((ys - h).abs().max(), (xs - h).abs().max()))
+    nz = (kl.abs() > tol).reshape(K, -1, n, n).any(1)  # (K, n, n)
+    dist = (torch.arange(n) - h).abs()
+    rows = torch.where(nz.any(2), dist.view(1, n), -1).amax(1)  # farthest row holding an entry, -1 for none
+    cols = torch.where(nz.any(1), dist.view(1, n), -1).amax(1)
+    return torch.maximum(rows, cols).clamp(min=0).tolist()
 
 
 def _fractional_index(coc: Tensor, nodes: Tensor) -> Tensor:
@@ -207,7 +219,7 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
     plans = []
     for kernel_fn, views in kernel_sets:
         kl = kernel_fn(nodes)  # (K, Ck, n, n)
-        support = [_support(kl[k]) for k in range(K)]
+        support = _supports(kl)
         per_channel = kl.shape[1] == 3 or coc.shape[1] == 3
         nc = 3 if per_channel else 1
         plans.append((tuple(views), support, [_view_psfs(kl[k], support[k], 3 + nc, views) for k in range(K)], per_channel))
