@@ -154,6 +154,9 @@ class Diagnosis:
     """Groups of effects the data cannot tell apart (:func:`dp5k_diagnose.selection.find_lookalikes`)."""
     selection: dict[str, Any] = field(default_factory=dict)
     """How the causes were chosen: the screen, the elimination and confirmation rounds."""
+    held: list[Sample] | None = field(default=None, repr=False, compare=False)
+    """The held-out pairs the gain was measured on, as read (not in the report): the analysis of the same models on
+    the same pairs then reuses their layered renders (:data:`neural_dp.simulators.base.model._LAYERS_CACHE`)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -282,7 +285,7 @@ def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig) -> Diagnosis:
     timings = {"load": t_load - t0, "fit_base": t_fit - t_load, "detect": t_det - t_fit, "gain": t_end - t_det, "total": t_end - t0}
     return Diagnosis("base", str(dataset), base, selection.findings, cause, extended, gain, timings, splits, reading,
                      causes, noise_model(selection.noise, cfg.detect), coverage, intervals, suspects, selection.lookalikes,
-                     selection.trace)
+                     selection.trace, held)
 
 
 def confirm_on_held_out(selection: Selection, base: BaseModel, before: TileErrors, held: list[Sample], cfg: DiagnoseConfig,
@@ -461,9 +464,10 @@ def run_diagnose(dataset: str | Path, model: SimulatorSpec = SimulatorSpec(), ou
 def _run_diagnose(dataset: str | Path, model: SimulatorSpec, out: str | Path | None, cfg: DiagnoseConfig) -> dict[str, Any]:
     diag = diagnose_base(dataset, cfg)
     result = diag.to_json()
-    reader = DatasetReader(dataset)
-    gain_split = diag.gain["split"]
-    held = diag.sharp_reading.apply(full_samples(load_pairs(reader, diag.splits_used[gain_split])))
+    held = diag.held
+    if held is None:
+        reader = DatasetReader(dataset)
+        held = diag.sharp_reading.apply(full_samples(load_pairs(reader, diag.splits_used[diag.gain["split"]])))
     analysis: dict[str, Any] = {
         "before": analyse(lambda s: diag.base.render(s.batch, s.field), held),
     }
