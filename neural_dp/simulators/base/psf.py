@@ -100,7 +100,7 @@ def _pixel_projections(n: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
     tent = ((1.0 - np.abs(np.arange(-(ss - 1), ss, dtype=np.float32)) / ss) / ss).astype(np.float32)  # (2 ss - 1,)
     tent_band = _band_matrix(n * ss, tent, ss, (ss - 1) // 2, n)
     box_band = (np.arange(n * ss).reshape(-1, 1) // ss == np.arange(n).reshape(1, -1)).astype(np.float32) / np.float32(ss)
-    return tent_band, box_band
+    return tent_band, box_band  # shared from the cache: never written (torch.from_numpy needs them writable)
 
 
 def _to_pixels(w: np.ndarray, n: int, ss: int, beta: float, sigma_fine: float = 0.0) -> Tensor:
@@ -239,7 +239,7 @@ def _fine_grid(n: int, ss: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(x, y, radius) of the (n ss)^2 fine sample centres of an n x n px kernel, px from its centre, float32."""
     fine = ((np.arange(n * ss, dtype=np.float32) + np.float32(0.5)) / np.float32(ss) - np.float32(n / 2.0)).astype(np.float32)
     fy, fx = np.meshgrid(fine, fine, indexing="ij")
-    return fx, fy, np.sqrt(fx**2 + fy**2)
+    return _frozen(fx, fy, np.sqrt(fx**2 + fy**2))
 
 
 @functools.lru_cache(maxsize=64)
@@ -250,7 +250,14 @@ def _pupil_grid(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     uy, ux = np.meshgrid(g, g, indexing="ij")
     rho2 = ux**2 + uy**2
     inside = rho2 <= 1.0
-    return ux[inside], uy[inside], rho2[inside]
+    return _frozen(ux[inside], uy[inside], rho2[inside])
+
+
+def _frozen(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The arrays made read-only (they are shared from a cache)."""
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
 
 
 _RHO_ZONES = np.linspace(0.0, 1.0, 101)
