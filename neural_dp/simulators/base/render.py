@@ -102,7 +102,7 @@ def _supports(kl: Tensor, tol: float = 1e-7) -> list[int]:
     K, n = kl.shape[0], kl.shape[-1]
     h = n // 2
     nz = (kl.abs() > tol).reshape(K, -1, n, n).any(1)  # (K, n, n)
-    dist = (torch.arange(n) - h).abs()
+    dist = (torch.arange(n, device=kl.device) - h).abs()
     rows = torch.where(nz.any(2), dist.view(1, n), -1).amax(1)  # farthest row holding an entry, -1 for none
     cols = torch.where(nz.any(1), dist.view(1, n), -1).amax(1)
     return torch.maximum(rows, cols).clamp(min=0).tolist()
