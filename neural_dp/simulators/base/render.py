@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -187,16 +187,17 @@ KernelSet = tuple[Callable[[Tensor], Tensor], tuple[str, ...]]
 
 @dataclass
 class _Composite:
-    """One kernel set's front-to-back compositing state over a chunk of pairs (:func:`render_layers_multi`)."""
+    """One kernel set's front-to-back compositing state over a chunk of ``nb`` pairs (:func:`render_layers_multi`):
+    its views' accumulated colour, coverage and transmittance, and the alphas not yet applied as occluders."""
 
-    views: tuple[str, ...]
-    support: list[int]
-    psfs: list[Tensor]
-    per_channel: bool
-    acc: dict[str, Tensor] = field(default_factory=dict)
-    cov: dict[str, Tensor] = field(default_factory=dict)
-    trans: dict[str, Tensor] = field(default_factory=dict)
-    pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = field(default_factory=list)
+    def __init__(self, views: tuple[str, ...], support: list[int], psfs: list[Tensor], per_channel: bool, s: Tensor) -> None:
+        nb, _, H, W = s.shape
+        self.views, self.support, self.psfs, self.per_channel = views, support, psfs, per_channel
+        self.nc = 3 if per_channel else 1  # alpha channels: one per colour when the CoC or the kernels differ by colour
+        self.acc = {v: torch.zeros_like(s) for v in views}
+        self.cov = {v: torch.zeros(nb, self.nc, H, W, device=s.device) for v in views}
+        self.trans = {v: torch.ones(nb, self.nc, H, W, device=s.device) for v in views}
+        self.pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = []
 
 
 def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: Sequence[KernelSet], cfg: RenderConfig
@@ -233,14 +234,7 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
         tt = t[b0 : b0 + cfg.chunk]
         nb = s.shape[0]
         boxes = _node_boxes(tt, K)
-        states = []
-        for views, support, psfs, per_channel in plans:
-            nc = 3 if per_channel else 1
-            st = _Composite(views, support, psfs, per_channel)
-            st.acc = {v: torch.zeros_like(s) for v in views}
-            st.cov = {v: torch.zeros(nb, nc, H, W, device=s.device) for v in views}
-            st.trans = {v: torch.ones(nb, nc, H, W, device=s.device) for v in views}
-            states.append(st)
+        states = [_Composite(views, support, psfs, per_channel, s) for views, support, psfs, per_channel in plans]
         for k in range(K):
             if k not in boxes:
                 continue
@@ -257,7 +251,7 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
                     mm = m.expand(nb, 3, *m.shape[-2:]) if st.per_channel else m
                     sigs[st.per_channel] = torch.cat([s[..., y0:y1, x0:x1] * mm, mm], dim=1)  # (nb, 3 + nc, h, w)
                 sig = sigs[st.per_channel]
-                nc = sig.shape[1] - 3
+                nc = st.nc
                 sup = st.support[k]
                 full = sig.new_zeros(nb, st.psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
                 add_full_convolution(full, 0, 0, sig, st.psfs[k], occupied)
