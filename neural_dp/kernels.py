@@ -274,10 +274,16 @@ def fft_convolve_full(x: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
     Returns:
         (..., V, C, rows, cols); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
     """
+    return fft_convolve_spectrum(torch.fft.rfft2(x, s=grid), psfs, grid)
+
+
+def fft_convolve_spectrum(X: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
+    """:func:`fft_convolve_full` from the images' spectrum ``X = rfft2(x, s=grid)`` (..., C, rows, cols // 2 + 1),
+    which several PSF sets convolving the same images share."""
     k = psfs.shape[-1]
     gy, gx = grid
-    X = torch.fft.rfft2(x, s=(gy, gx)).unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
-    big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(x.dtype)
+    X = X.unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
+    big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(X.real.dtype)
     big[..., :k, :k] = psfs
     K = torch.fft.rfft2(big)
     if psfs.ndim == 3:
@@ -285,7 +291,8 @@ def fft_convolve_full(x: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
     return torch.fft.irfft2(X * K, s=(gy, gx))
 
 
-def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None) -> None:
+def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None,
+                         memo: dict | None = None) -> None:
     """``dest[:, :, :, y0 + i, x0 + j] += full(x * psf_v)[i, j]`` for every PSF v (in place).
 
     Kernels up to :data:`DIRECT_MAX_PX` wide by :func:`convolve_full`; larger ones by :func:`fft_convolve_full`
@@ -297,6 +304,8 @@ def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor
             (y0, x0).
         x: (B, C, h, w).
         psfs: (V, k, k) or (V, C, k, k), k odd (true convolution: mass at u < 0 moves content left).
+        memo: a dict kept while several PSF sets convolve the same ``x`` and ``occupied``: the tiles' spectra
+            of each FFT grid are computed once (the same values as computing them for each set).
     """
     h, w = x.shape[-2:]
     k = psfs.shape[-1]
@@ -305,10 +314,17 @@ def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor
         return
     tile = sy, sx = tile_shape_px(h, w, k)
     occ = occupied if occupied is not None else torch.ones(h, w, dtype=torch.bool, device=x.device)
-    tiles, origins = occupied_tiles(x, occ, tile)
     grid = fft_grid(tile, k)
-    for i in range(0, len(origins), TILES_PER_CHUNK):
-        full = fft_convolve_full(tiles[i : i + TILES_PER_CHUNK], psfs, grid)
+    hit = memo.get((tile, grid)) if memo is not None else None
+    if hit is None:
+        tiles, origins = occupied_tiles(x, occ, tile)
+        spectra = [torch.fft.rfft2(tiles[i : i + TILES_PER_CHUNK], s=grid) for i in range(0, len(origins), TILES_PER_CHUNK)]
+        if memo is not None:
+            memo[(tile, grid)] = (spectra, origins)
+    else:
+        spectra, origins = hit
+    for j, i in enumerate(range(0, len(origins), TILES_PER_CHUNK)):
+        full = fft_convolve_spectrum(spectra[j], psfs, grid)
         for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
             ny, nx = min(sy + k - 1, h + k - 1 - ty), min(sx + k - 1, w + k - 1 - tx)
             dest[..., y0 + ty : y0 + ty + ny, x0 + tx : x0 + tx + nx] += f[..., :ny, :nx]

@@ -286,3 +286,20 @@ def test_scored_values_are_the_masked_entries_and_follow_an_in_place_change() ->
     del sample, score
     gc.collect()
     assert key not in fitting._SCORED_INDEX
+
+
+def test_a_pupil_cut_below_the_axis_is_the_mirror_of_the_cut_above_it() -> None:
+    """A node whose pupil is cut at ``clip_dy < 0`` is served as the y-flip of the node at ``+clip_dy``: it must
+    equal the kernel built directly for that cut (which is not symmetric in y, so a flip along x or no flip
+    fails)."""
+    from neural_dp.simulators.base import psf
+
+    psf._KERNEL_CACHE.clear()
+    one = torch.ones(())
+    nodes = torch.tensor([-9.0, 4.0, 12.5])
+    shape = psf.PSFShape(coc_px=nodes, scale=one, softness_px=one * 0.6, rim2=one * 0.1, rim4=one * 0.0, split=one, pixel_box=one * 0.3,
+                         clip_dx=one * 0.2, clip_dy=one * -0.35)
+    got = psf.half_disc_kernels(shape, 4)
+    direct = psf.stack_centred([psf._pushforward_kernel(float(c), 1.0, 0.6, 0.1, 0.0, 1.0, 0.3, 0.0, 0.2, 0.0, -0.35) for c in nodes])
+    assert float((direct - direct.flip(-2)).abs().max()) > 1e-3  # the cut is not symmetric in y
+    torch.testing.assert_close(got, direct, atol=1e-7, rtol=0)

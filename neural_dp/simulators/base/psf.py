@@ -110,18 +110,28 @@ def _to_pixels(w: np.ndarray, n: int, ss: int, beta: float, sigma_fine: float = 
 
     The softening and the sampling are separable, so both are one (n ss, n) matrix per axis, ``P = G T``
     (``G`` the Gaussian's band, ``T`` the tent's or the box's): ``P^T w P`` costs (n ss)^2 n, not (n ss)^3."""
-    tent_band, box_band = _pixel_projections(n, ss)
-    proj = np.concatenate([tent_band, box_band], axis=1) if beta > 0 else tent_band
-    if sigma_fine > 0.3:
-        g = _gaussian_taps(sigma_fine)
-        r = (g.size - 1) // 2
-        proj = _matmul(_band_matrix(n * ss, g, 1, r, n * ss), proj)
+    proj = _softened_projection(n, ss, beta > 0, float(sigma_fine))
     right = _matmul(w, proj)  # (n ss, n or 2 n)
     out = _matmul(proj[:, :n].T, right[:, :n])
     if beta > 0:
         out = np.float32(1.0 - beta) * out + np.float32(beta) * _matmul(proj[:, n:].T, right[:, n:])
     out = out / max(float(out.sum()), 1e-12)
     return torch.from_numpy(np.ascontiguousarray(out, dtype=np.float32))
+
+
+@functools.lru_cache(maxsize=128)
+def _softened_projection(n: int, ss: int, with_box: bool, sigma_fine: float) -> np.ndarray:
+    """(n ss, n) or, ``with_box``, (n ss, 2 n) float32: the tent's (and the box's) projection to pixels with the
+    Gaussian softening of ``sigma_fine`` fine samples folded in (none below 0.3), see :func:`_to_pixels`. Cached:
+    every node of a render shares the rim softness, so the kernels of one size share it (never written; left
+    writable because ``torch.from_numpy`` needs that)."""
+    tent_band, box_band = _pixel_projections(n, ss)
+    proj = np.concatenate([tent_band, box_band], axis=1) if with_box else tent_band
+    if sigma_fine > 0.3:
+        g = _gaussian_taps(sigma_fine)
+        r = (g.size - 1) // 2
+        proj = _matmul(_band_matrix(n * ss, g, 1, r, n * ss), proj)
+    return np.ascontiguousarray(proj)
 
 
 def _matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -157,18 +167,33 @@ def half_disc_kernels(shape: PSFShape, supersample: int = 4) -> Tensor:
     for k in range(K):
         node = tuple(c[k] for c in cols)
         key = (str(coc.device), supersample) + node
-        ker = _KERNEL_CACHE.get(key)
-        if ker is None:
-            thin = node[7] == 0.0 and node[8] == 0.0 and node[10] == 0.0  # no sa_px, clip_dx or clip_dy
-            build = _half_disc_kernel if thin else _pushforward_kernel
-            ker = build(*node, supersample=supersample, device=coc.device)
-            _KERNEL_CACHE[key] = ker
-            if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
-                _KERNEL_CACHE.popitem(last=False)
+        if node[10] < 0.0:  # a pupil cut below the axis: the mirror image, in y, of the cut above it
+            kernels.append(_cached_kernel(key[:-1] + (-node[10],), supersample, coc.device).flip(-2))
         else:
-            _KERNEL_CACHE.move_to_end(key)
-        kernels.append(ker)
+            kernels.append(_cached_kernel(key, supersample, coc.device))
     return stack_centred(kernels)
+
+
+def _cached_kernel(key: tuple, supersample: int, device: torch.device | str) -> Tensor:
+    """The kernel of one node, ``key`` = (device, supersample, the node's :class:`PSFShape` fields as floats), from
+    :data:`_KERNEL_CACHE` or built.
+
+    A node whose pupil cut sits at ``clip_dy < 0`` is the y-mirror of the node at ``-clip_dy`` (the pupil grid,
+    the radial profile and the split are symmetric in pupil y, and pupil y lands along image y):
+    :func:`half_disc_kernels` flips that one, the same kernel up to float32 rounding (2e-8 of a 0.05 peak), so
+    the nodes of a field-varying PSF below the axis cost no build of their own."""
+    ker = _KERNEL_CACHE.get(key)
+    if ker is None:
+        node = key[2:]
+        thin = node[7] == 0.0 and node[8] == 0.0 and node[10] == 0.0  # no sa_px, clip_dx or clip_dy
+        build = _half_disc_kernel if thin else _pushforward_kernel
+        ker = build(*node, supersample=supersample, device=device)
+        _KERNEL_CACHE[key] = ker
+        if len(_KERNEL_CACHE) > _KERNEL_CACHE_SIZE:
+            _KERNEL_CACHE.popitem(last=False)
+    else:
+        _KERNEL_CACHE.move_to_end(key)
+    return ker
 
 
 def stack_centred(kernels: Sequence[Tensor], dim: int = 0) -> Tensor:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...kernels import add_full_convolution
+from ...kernels import DIRECT_MAX_PX, add_full_convolution, convolve_full
 
 __all__ = ["RenderConfig", "render_layers", "render_layers_multi", "NODE_SPACING_LADDER"]
 
@@ -185,19 +185,26 @@ KernelSet = tuple[Callable[[Tensor], Tensor], tuple[str, ...]]
 """A ``kernel_fn`` (as in :func:`render_layers`) and the views to render with it."""
 
 
-@dataclass
 class _Composite:
     """One kernel set's front-to-back compositing state over a chunk of ``nb`` pairs (:func:`render_layers_multi`):
-    its views' accumulated colour, coverage and transmittance, and the alphas not yet applied as occluders."""
+    its views' accumulated colour (nb, V, 3, H, W), coverage and transmittance (nb, V, nc, H, W), V the views it
+    renders (stacked, so that each node updates every view in one operation), and the alphas not yet applied as
+    occluders."""
 
     def __init__(self, views: tuple[str, ...], support: list[int], psfs: list[Tensor], per_channel: bool, s: Tensor) -> None:
         nb, _, H, W = s.shape
         self.views, self.support, self.psfs, self.per_channel = views, support, psfs, per_channel
         self.nc = 3 if per_channel else 1  # alpha channels: one per colour when the CoC or the kernels differ by colour
-        self.acc = {v: torch.zeros_like(s) for v in views}
-        self.cov = {v: torch.zeros(nb, self.nc, H, W, device=s.device) for v in views}
-        self.trans = {v: torch.ones(nb, self.nc, H, W, device=s.device) for v in views}
-        self.pending: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]] = []
+        V = len(views)
+        self.acc = s.new_zeros(nb, V, 3, H, W)
+        self.cov = s.new_zeros(nb, V, self.nc, H, W)
+        self.trans = s.new_ones(nb, V, self.nc, H, W)
+        self.pending: list[tuple[float, tuple[int, int, int, int], Tensor]] = []
+
+    def view(self, v: str) -> Tensor:
+        """The composited view ``v`` (nb, 3, H, W)."""
+        i = self.views.index(v)
+        return self.acc[:, i] / self.cov[:, i].clamp(min=1e-6)
 
 
 def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: Sequence[KernelSet], cfg: RenderConfig
@@ -241,7 +248,7 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
             y0, y1, x0, x1 = boxes[k]
             m = (1.0 - (tt[..., y0:y1, x0:x1] - k).abs()).clamp(min=0.0)  # (nb, Cc, h, w) soft membership
             occupied = (m > 0).flatten(0, 1).any(0)
-            sigs: dict[bool, Tensor] = {}
+            sigs: dict[bool, tuple[Tensor, dict]] = {}  # per alpha layout: the node's layer and its FFT spectra
             for st in states:
                 group = [p for p in st.pending if occludes(p[0], node_c[k])]
                 if group:
@@ -249,26 +256,26 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
                     st.pending = [p for p in st.pending if not occludes(p[0], node_c[k])]
                 if st.per_channel not in sigs:
                     mm = m.expand(nb, 3, *m.shape[-2:]) if st.per_channel else m
-                    sigs[st.per_channel] = torch.cat([s[..., y0:y1, x0:x1] * mm, mm], dim=1)  # (nb, 3 + nc, h, w)
-                sig = sigs[st.per_channel]
+                    sigs[st.per_channel] = (torch.cat([s[..., y0:y1, x0:x1] * mm, mm], dim=1), {})  # (nb, 3 + nc, h, w)
+                sig, memo = sigs[st.per_channel]
                 nc = st.nc
                 sup = st.support[k]
-                full = sig.new_zeros(nb, st.psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
-                add_full_convolution(full, 0, 0, sig, st.psfs[k], occupied)
+                # (nb, V', 3 + nc, ...): V' = 1 for a symmetric kernel (every view the same blur), else one per view
+                if 2 * sup + 1 <= DIRECT_MAX_PX:
+                    full = convolve_full(sig, st.psfs[k])  # what add_full_convolution adds to zeros, without them
+                else:
+                    full = sig.new_zeros(nb, st.psfs[k].shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
+                    add_full_convolution(full, 0, 0, sig, st.psfs[k], occupied, memo)
                 # the blur covers the box grown by the support, clipped to the frame
                 ry0, ry1, rx0, rx1 = max(y0 - sup, 0), min(y1 + sup, H), max(x0 - sup, 0), min(x1 + sup, W)
                 full = full[..., ry0 - (y0 - sup) : ry1 - (y0 - sup), rx0 - (x0 - sup) : rx1 - (x0 - sup)]
-                alphas = {}
-                for v in st.views:
-                    blurred = full[:, 0 if v == st.views[0] else -1]
-                    col, alpha = blurred[:, :3], blurred[:, 3 : 3 + nc].clamp(0.0, 1.0)
-                    tr = st.trans[v][..., ry0:ry1, rx0:rx1]
-                    st.acc[v][..., ry0:ry1, rx0:rx1] += tr * col
-                    st.cov[v][..., ry0:ry1, rx0:rx1] += tr * alpha
-                    alphas[v] = alpha
-                st.pending.append((node_c[k], (ry0, ry1, rx0, rx1), alphas))
+                col, alpha = full[:, :, :3], full[:, :, 3 : 3 + nc].clamp(0.0, 1.0)
+                tr = st.trans[..., ry0:ry1, rx0:rx1]
+                st.acc[..., ry0:ry1, rx0:rx1] += tr * col
+                st.cov[..., ry0:ry1, rx0:rx1] += tr * alpha
+                st.pending.append((node_c[k], (ry0, ry1, rx0, rx1), alpha))
         for out, st in zip(outs, states):
-            out.append(tuple(st.acc[v] / st.cov[v].clamp(min=1e-6) if v in st.views else None for v in ("l", "r")))
+            out.append(tuple(st.view(v) if v in st.views else None for v in ("l", "r")))
     return [tuple(torch.cat([o[i] for o in out]) if v in st_views else None for i, v in enumerate(("l", "r")))  # type: ignore[misc]
             for out, (st_views, *_rest) in zip(outs, plans)]
 
@@ -287,13 +294,13 @@ def _view_psfs(kernel: Tensor, support: int, channels: int, views: tuple[str, ..
     return torch.stack([torch.cat([k, k], 0)[:channels] for k in ks])
 
 
-def _occlude(trans: dict[str, Tensor], group: list[tuple[float, tuple[int, int, int, int], dict[str, Tensor]]]) -> None:
-    """Multiply each view's transmittance by ``clip(1 - sum of the group's alphas, 0, 1)`` (in place), over the
-    union of the group's regions (``(y0, y1, x0, x1)`` each; the alphas are zero outside them)."""
+def _occlude(trans: Tensor, group: list[tuple[float, tuple[int, int, int, int], Tensor]]) -> None:
+    """Multiply the views' transmittance ``trans`` (nb, V, nc, H, W) by ``clip(1 - sum of the group's alphas, 0,
+    1)`` (in place), over the union of the group's regions (``(y0, y1, x0, x1)`` each; the alphas, (nb, V or 1,
+    nc, h, w), are zero outside them)."""
     uy0, uy1 = min(p[1][0] for p in group), max(p[1][1] for p in group)
     ux0, ux1 = min(p[1][2] for p in group), max(p[1][3] for p in group)
-    for v, tr in trans.items():
-        total = tr.new_zeros(*tr.shape[:2], uy1 - uy0, ux1 - ux0)
-        for _, (y0, y1, x0, x1), alphas in group:
-            total[..., y0 - uy0 : y1 - uy0, x0 - ux0 : x1 - ux0] += alphas[v]
-        tr[..., uy0:uy1, ux0:ux1] *= (1.0 - total).clamp(0.0, 1.0)
+    total = trans.new_zeros(*trans.shape[:3], uy1 - uy0, ux1 - ux0)
+    for _, (y0, y1, x0, x1), alpha in group:
+        total[..., y0 - uy0 : y1 - uy0, x0 - ux0 : x1 - ux0] += alpha
+    trans[..., uy0:uy1, ux0:ux1] *= (1.0 - total).clamp(0.0, 1.0)
