@@ -52,7 +52,8 @@ TILE_SIDE_PER_KERNEL_PX = 2
 * k)`` px a side (:func:`tile_shape_px`), so a tile's FFT grid (side + k - 1) stays within about 1.5 x its side."""
 
 TILES_PER_CHUNK = 16
-"""Tiles transformed at once (bounds the memory of the batched FFTs)."""
+"""Tiles transformed at once with two PSFs (bounds the memory of the batched FFTs); with V PSFs (the views of
+every field node of a field-varying PSF, convolved together) ``max(1, 2 TILES_PER_CHUNK / V)``."""
 
 
 def _kernel_size(weights: Tensor, dim: int) -> int:
@@ -274,16 +275,10 @@ def fft_convolve_full(x: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
     Returns:
         (..., V, C, rows, cols); the full convolution is its top-left (h + k - 1, w + k - 1) corner.
     """
-    return fft_convolve_spectrum(torch.fft.rfft2(x, s=grid), psfs, grid)
-
-
-def fft_convolve_spectrum(X: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Tensor:
-    """:func:`fft_convolve_full` from the images' spectrum ``X = rfft2(x, s=grid)`` (..., C, rows, cols // 2 + 1),
-    which several PSF sets convolving the same images share."""
     k = psfs.shape[-1]
     gy, gx = grid
-    X = X.unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
-    big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(X.real.dtype)
+    X = torch.fft.rfft2(x, s=(gy, gx)).unsqueeze(-4)  # (..., 1, C, gy, gx // 2 + 1)
+    big = psfs.new_zeros(*psfs.shape[:-2], gy, gx).to(x.dtype)
     big[..., :k, :k] = psfs
     K = torch.fft.rfft2(big)
     if psfs.ndim == 3:
@@ -291,21 +286,18 @@ def fft_convolve_spectrum(X: Tensor, psfs: Tensor, grid: tuple[int, int]) -> Ten
     return torch.fft.irfft2(X * K, s=(gy, gx))
 
 
-def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None,
-                         memo: dict | None = None) -> None:
+def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor, occupied: Tensor | None = None) -> None:
     """``dest[:, :, :, y0 + i, x0 + j] += full(x * psf_v)[i, j]`` for every PSF v (in place).
 
     Kernels up to :data:`DIRECT_MAX_PX` wide by :func:`convolve_full`; larger ones by :func:`fft_convolve_full`
     of only the tiles of ``x`` that hold a True of ``occupied`` (h, w) (``x`` is zero elsewhere; default:
-    every tile), :data:`TILES_PER_CHUNK` at a time.
+    every tile), :data:`TILES_PER_CHUNK` at a time (fewer with more than two PSFs).
 
     Args:
         dest: (B, V, C, Hd, Wd); it must hold the full convolution's (h + k - 1, w + k - 1) extent at
             (y0, x0).
         x: (B, C, h, w).
         psfs: (V, k, k) or (V, C, k, k), k odd (true convolution: mass at u < 0 moves content left).
-        memo: a dict kept while several PSF sets convolve the same ``x`` and ``occupied``: the tiles' spectra
-            of each FFT grid are computed once (the same values as computing them for each set).
     """
     h, w = x.shape[-2:]
     k = psfs.shape[-1]
@@ -314,17 +306,11 @@ def add_full_convolution(dest: Tensor, y0: int, x0: int, x: Tensor, psfs: Tensor
         return
     tile = sy, sx = tile_shape_px(h, w, k)
     occ = occupied if occupied is not None else torch.ones(h, w, dtype=torch.bool, device=x.device)
+    tiles, origins = occupied_tiles(x, occ, tile)
     grid = fft_grid(tile, k)
-    hit = memo.get((tile, grid)) if memo is not None else None
-    if hit is None:
-        tiles, origins = occupied_tiles(x, occ, tile)
-        spectra = [torch.fft.rfft2(tiles[i : i + TILES_PER_CHUNK], s=grid) for i in range(0, len(origins), TILES_PER_CHUNK)]
-        if memo is not None:
-            memo[(tile, grid)] = (spectra, origins)
-    else:
-        spectra, origins = hit
-    for j, i in enumerate(range(0, len(origins), TILES_PER_CHUNK)):
-        full = fft_convolve_spectrum(spectra[j], psfs, grid)
-        for f, (ty, tx) in zip(full, origins[i : i + TILES_PER_CHUNK]):
+    step = max(1, 2 * TILES_PER_CHUNK // max(psfs.shape[0], 2))
+    for i in range(0, len(origins), step):
+        full = fft_convolve_full(tiles[i : i + step], psfs, grid)
+        for f, (ty, tx) in zip(full, origins[i : i + step]):
             ny, nx = min(sy + k - 1, h + k - 1 - ty), min(sx + k - 1, w + k - 1 - tx)
             dest[..., y0 + ty : y0 + ty + ny, x0 + tx : x0 + tx + nx] += f[..., :ny, :nx]

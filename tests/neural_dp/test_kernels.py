@@ -115,24 +115,3 @@ def test_fft_tiles_fit_the_image_and_give_the_full_convolution(h: int, w: int) -
     ref = convolve_full(x, psfs, backend="torch")
     torch.testing.assert_close(dest, ref, atol=1e-9, rtol=1e-9)
 
-
-def test_fft_spectra_shared_between_psf_sets_give_each_sets_own_convolution() -> None:
-    """A memo shared by two PSF sets of different sizes convolving the same layer (the field nodes of a
-    field-varying PSF) reuses the tiles' spectra where the FFT grid is the same, and each set's result is the
-    one it gets alone."""
-    from neural_dp.kernels import add_full_convolution
-
-    torch.manual_seed(2)
-    x = torch.rand(2, 4, 60, 90)
-    x[..., :30, :] = 0.0
-    occupied = x.abs().sum((0, 1)) > 0
-    memo: dict = {}
-    for k in (21, 23, 21):
-        psfs = torch.rand(2, k, k)
-        alone = torch.zeros(2, 2, 4, 60 + k - 1, 90 + k - 1)
-        shared = torch.zeros_like(alone)
-        add_full_convolution(alone, 0, 0, x, psfs, occupied)
-        add_full_convolution(shared, 0, 0, x, psfs, occupied, memo)
-        assert torch.equal(shared, alone)
-        torch.testing.assert_close(shared, convolve_full(x, psfs, backend="torch"), atol=1e-4, rtol=1e-4)
-    assert 1 <= len(memo) <= 2  # 21 and 23 px kernels: one grid or two, each computed once
