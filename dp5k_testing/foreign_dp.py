@@ -24,6 +24,7 @@ docs/conventions.md (C > 0 behind focus; there the left view receives the left h
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -211,6 +212,17 @@ class Planted:
         return prof
 
 
+@functools.lru_cache(maxsize=8192)
+def _view_kernel(c: float, split: float, rim: float, fba: float, sampling: str, side: int) -> np.ndarray:
+    """``half_kernel(c, Planted profile of (rim, fba), split)`` for the left view (``side`` 1), hflipped for the
+    right (-1); read-only. Cached: CoC nodes sit on a fixed grid (:func:`_group_nodes`), so the pairs of a set
+    ask for the same kernels again (on a field-varying PSF set, 23,000 builds made 60 % of its writing time)."""
+    k = half_kernel(c, Planted({"psf_profile": rim, "front_back_asymmetry": fba}).profile(), split, sampling=sampling)
+    k = k if side > 0 else k[:, ::-1]
+    k.flags.writeable = False
+    return k
+
+
 def _group_nodes(c: np.ndarray) -> np.ndarray:
     """Quantise signed CoC (px) onto a grid: 0.05 px steps up to 2 px, then 1.5 % of |c|."""
     a = np.abs(c)
@@ -275,7 +287,12 @@ def render_views(scene: ForeignScene, o: ForeignOptics, planted: Planted, sampli
     band_lo = np.minimum(np.floor(band_t), 7).astype(np.int64)
     band_w = band_t - band_lo  # the upper band's share of the pixel's light
     split_of = lambda bn: 1.2 * fvp * -(bn / 4 - 1)  # noqa: E731
-    prof = planted.profile()
+    rim, fba = planted.get("psf_profile"), planted.get("front_back_asymmetry")
+
+    def kernel_of(cn: float, bn: int, side: int) -> np.ndarray:
+        """The left (``side`` 1) or right (-1) view's PSF of CoC node ``cn`` in field band ``bn``."""
+        return _view_kernel(cn, side * split_of(bn), rim, fba, sampling, side)
+
     size_front = 1 + 0.1 * planted.get("front_back_asymmetry")
     f = o.focal_length_mm
     groups = [((0,), f + ca), ((1,), f), ((2,), f - ca)] if ca else [((0, 1, 2), f)]
@@ -287,8 +304,8 @@ def render_views(scene: ForeignScene, o: ForeignOptics, planted: Planted, sampli
         lk = leak if leak.any() else None
         shares = [(img * (1 - band_w[..., None]), band_lo), (img * band_w[..., None], band_lo + 1)] if fvp else [(img, None)]
         for part, bd in shares:
-            left[..., list(chans)] += scatter(part, c, lambda cn, bn: half_kernel(cn, prof, split_of(bn), sampling=sampling), lk, bd)
-            right[..., list(chans)] += scatter(part, c, lambda cn, bn: half_kernel(cn, prof, -split_of(bn), sampling=sampling)[:, ::-1], lk, bd)
+            left[..., list(chans)] += scatter(part, c, lambda cn, bn: kernel_of(cn, bn, 1), lk, bd)
+            right[..., list(chans)] += scatter(part, c, lambda cn, bn: kernel_of(cn, bn, -1), lk, bd)
     g = planted.get("lr_gain_imbalance")
     if g:
         ramp = g * (1 + 0.5 * xn)[..., None]

@@ -8,6 +8,7 @@ between two CoC nodes and composites front to back, so that a near surface hides
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -67,10 +68,12 @@ def _nodes(coc: Tensor, valid: Tensor, cfg: RenderConfig) -> Tensor:
     slightly (a fitted parameter's finite difference), so interpolation error stays constant and Jacobians
     stay clean; ``step`` and ``rel`` grow in fixed ratios only when the range needs more than ``max_nodes``.
     """
-    v = coc[valid.expand_as(coc)] if valid is not None else coc.reshape(-1)
-    if v.numel() == 0:
-        v = coc.reshape(-1)
-    lo, hi = (float(x) for x in torch.aminmax(v))
+    lo = hi = math.nan
+    if valid is not None:  # the extremes over the valid pixels, without gathering them (5 x faster)
+        m = valid.expand_as(coc)
+        lo, hi = float(torch.where(m, coc, math.inf).amin()), float(torch.where(m, coc, -math.inf).amax())
+    if not lo <= hi:  # no valid pixel (or no mask): the whole map
+        lo, hi = (float(x) for x in torch.aminmax(coc))
     return torch.tensor(_node_grid(lo, hi, cfg.node_step_px, cfg.node_rel_step, cfg.max_nodes), device=coc.device, dtype=torch.float32)
 
 
