@@ -114,4 +114,3 @@ def test_fft_tiles_fit_the_image_and_give_the_full_convolution(h: int, w: int) -
     add_full_convolution(dest, 0, 0, x, psfs, occupied)
     ref = convolve_full(x, psfs, backend="torch")
     torch.testing.assert_close(dest, ref, atol=1e-9, rtol=1e-9)
-

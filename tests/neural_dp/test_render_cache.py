@@ -144,7 +144,8 @@ def test_a_crop_on_one_side_of_the_field_renders_as_the_three_node_blend(monkeyp
     w[0.0] = 1 - w[-1.0] - w[1.0]
     want_l = sum(w[x] * nodes[x][0] for x in FIELD_NODES_X)
     want_r = sum(w[x] * nodes[-x if x else 0.0][1] for x in FIELD_NODES_X)
-    # a node rendered for one view transforms a smaller FFT batch than one rendered for both: float32 rounding
+    # the field nodes' kernels are convolved together (zero-padded to one support, one FFT batch), each node
+    # alone here: the same blur up to float32 rounding
     torch.testing.assert_close(got[0], want_l, atol=1e-6, rtol=0)
     torch.testing.assert_close(got[1], want_r, atol=1e-6, rtol=0)
     assert float((nodes[1.0][0] - nodes[0.0][0]).abs().max()) > 1e-3  # the nodes differ: the blend matters

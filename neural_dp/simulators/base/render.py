@@ -310,7 +310,6 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
                 continue
             y0, y1, x0, x1 = boxes[k]
             m = (1.0 - (tt[..., y0:y1, x0:x1] - k).abs()).clamp(min=0.0)  # (nb, Cc, h, w) soft membership
-            occupied = (m > 0).flatten(0, 1).any(0)
             for st in states:
                 plan = st.plan
                 group = [p for p in st.pending if occludes(p[0], node_c[k])]
@@ -325,6 +324,7 @@ def render_layers_multi(sharp: Tensor, coc: Tensor, valid: Tensor, kernel_sets: 
                     full = convolve_full(sig, psfs)  # what add_full_convolution adds to zeros, without them
                 else:
                     full = sig.new_zeros(nb, psfs.shape[0], 3 + nc, y1 - y0 + 2 * sup, x1 - x0 + 2 * sup)
+                    occupied = (m > 0).flatten(0, 1).any(0)  # (h, w): the FFT path skips tiles without members
                     add_full_convolution(full, 0, 0, sig, psfs, occupied)
                 # the blur covers the box grown by the support, clipped to the frame
                 ry0, ry1, rx0, rx1 = max(y0 - sup, 0), min(y1 + sup, H), max(x0 - sup, 0), min(x1 + sup, W)
