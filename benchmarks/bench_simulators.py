@@ -38,6 +38,7 @@ from dp5k_learn.losses import dp_loss
 from neural_dp.model import ModelConfig
 from neural_dp.registry import PEERS, get_simulator
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
+from run_info import device_suffix, recording
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:
@@ -207,4 +208,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recording(f"speed-simulators{device_suffix(sys.argv)}", "Simulators: seconds per image, Neural DP inference and training",
+                   enabled="--quick" not in sys.argv and "--_neural_child" not in sys.argv):
+        raise SystemExit(main())
