@@ -9,6 +9,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -111,7 +112,7 @@ def markdown_table(text: str) -> tuple[list[str], list[list[str]]]:
                   and set(lines[i + 1].replace("|", "").strip()) <= set("-: ") and lines[i + 1].startswith("|")), None)
     if start is None:
         return [], []
-    cells = lambda l: [c.strip() for c in l.strip().strip("|").split("|")]  # noqa: E731
+    cells = lambda l: [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", l.strip()[1:-1] if l.strip().endswith("|") else l.strip()[1:])]  # noqa: E731
     rows = []
     for l in lines[start + 2:]:
         if not l.startswith("|"):
