@@ -33,15 +33,18 @@ OUT = ROOT / "docs" / "results.md"
 
 SECTIONS: list[tuple[str, str, list[str]]] = [
     ("Diagnose", "How often `dp5k diagnose` names what was planted, and what it finds on real data "
-     "([diagnose](diagnose.md)).", ["diagnose-matrix", "diagnose-"]),
+     "([diagnose](diagnose.md)).", ["diagnose-matrix", "diagnose-sdirt", "diagnose-foreign", "diagnose-multi",
+                                     "diagnose-detectability", "diagnose-neural", "diagnose-strengths", "diagnose-"]),
     ("Simulator quality: Table 2", "Every simulator scored on held-out pairs ([simulators](simulators.md)).",
-     ["table2-"]),
+     ["table2-studio", "table2-real", "table2-"]),
     ("Downstream: DP deblurring", "A deblurrer trained on each simulator's data ([deblur](deblur.md)).",
      ["downstream", "deblur-"]),
     ("Processing accuracy", "Depth and calibration against a reference ([processing](processing.md)).", ["process-"]),
     ("Speed and memory", "Each stage's cost against its floor ([paper scale](paper-scale.md)).",
-     ["speed-capture", "speed-studio", "speed-process", "speed-simulators", "speed-neural", "speed-diagnose", "speed-"]),
-    ("The two commands", "`make demo` and `make test`, timed by `scripts/record_timing.py`.", ["make-"]),
+     ["speed-capture", "speed-studio-session-paper", "speed-studio-session", "speed-studio", "speed-process-paper",
+      "speed-process", "speed-simulators", "speed-neural", "speed-diagnose-matrix", "speed-diagnose-large",
+      "speed-diagnose", "speed-"]),
+    ("The two commands", "`make demo` and `make test`, timed by `scripts/record_timing.py`.", ["make-demo", "make-test", "make-"]),
 ]
 """(heading, one line, name prefixes in order); a result whose name matches no prefix goes to "Other"."""
 
@@ -152,6 +155,8 @@ def matrix_block(rows: list[dict[str, Any]], folders: list[str]) -> str:
                      f"{min(loads):.1f}-{max(loads):.1f}" if loads else "-",
                      "/".join(sorted({str(r.get('nproc', '?')) for r in rs}))])
     out += [dm.md_table(["renderer", "sets", "by strength", "run", "commits (sets)", "load at start", "CPUs"], body)]
+    out += ["", "**Against the targets** (issue 30; the moderate strength, every seed; seconds: median diagnose time of a "
+            "set with one and with two planted effects on the 2-core machine, load as above)", "", targets_table(dm, ok)]
     out += ["", "**Named causes**", "", dm.summary_table(ok), "", "**Clean sets (false alarms)**", "", dm.clean_table(ok),
             "", "**Seconds per set** (diagnose only; rendering apart)", "", dm.seconds_table(ok)]
     for (rend,), rs in dm.grouped(ok, lambda r: (r["renderer"],)):
@@ -161,6 +166,24 @@ def matrix_block(rows: list[dict[str, Any]], folders: list[str]) -> str:
     if errors:
         out += ["", "Sets that failed in their newest run: " + "; ".join(f"{r['key']} ({r['error'][:80]})" for r in errors)]
     return "\n".join(out)
+
+
+def targets_table(dm: Any, rows: list[dict[str, Any]]) -> str:
+    import statistics
+
+    def median_s(rs: list[dict[str, Any]], k: int) -> str:
+        secs = [r["seconds"] for r in rs if len(r["planted"]) == k and "seconds" in r]
+        return f"{statistics.median(secs):.0f}" if secs else "-"
+
+    body = []
+    for (rend,), rs in dm.grouped(rows, lambda r: (r["renderer"],)):
+        mod = [r for r in rs if r["level"] == "moderate"]
+        clean = [r for r in rs if r["level"] == "clean"]
+        body.append([rend, dm.frac(mod, dm.exact, dm.n_planted(1)), dm.frac(mod, dm.all_named, dm.n_planted(2)),
+                     dm.frac(mod, dm.exact, dm.n_planted(2)), dm.frac(clean, lambda r: bool(r["causes"])),
+                     f"{median_s(mod, 1)} / {median_s(mod, 2)}"])
+    return dm.md_table(["renderer", "singles named exactly (>= 95 %)", "pairs: both named (>= 80 %)", "pairs exactly (>= 70 %)",
+                        "clean sets: false alarms (<= 5 %)", "median s, one / two effects (60 / 120)"], body)
 
 
 def section_of(name: str) -> int:
