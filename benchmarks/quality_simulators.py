@@ -1,4 +1,4 @@
-"""Full Table-2-style comparison on studio data with realistic effects (the run docs/simulators.md reports).
+"""Full Table-2-style comparison on studio data with realistic effects (its last run: docs/results.md).
 
 Steps: render a studio dataset with planted physical effects (``dp5k studio make-dataset``), train the
 Neural DP Simulator on its train split (``dp5k train``), evaluate every simulator on the held-out test

@@ -1,7 +1,7 @@
 """The downstream study: Tables 3 and 4 of the paper on two test sets, studio-measured
-and real (Sdirt), with the Neural DP Simulator, several seeds and 95 % intervals. docs/deblur.md reports two reduced
-runs of step 5 (``dp5k study downstream`` with smaller budgets) on the data steps 1-3 prepared, not a full run of this
-script.
+and real (Sdirt), with the Neural DP Simulator, several seeds and 95 % intervals. The figure in docs/results.md is a
+reduced run of step 5 (``dp5k study downstream`` with smaller budgets) on the data steps 1-3 prepared, not a full run
+of this script; a full run records itself there.
 
 Steps:
 

@@ -1,5 +1,5 @@
 """The paper's Table 2 on real pairs that nobody here rendered: every simulator scored on held-out real Sdirt tiles
-(Canon EOS R6 II + RF50, split by photo), with 95 % intervals (the run docs/simulators.md reports).
+(Canon EOS R6 II + RF50, split by photo), with 95 % intervals (its last run: docs/results.md).
 
 Steps:
 
