@@ -1,5 +1,5 @@
 """The paper's Table 2 on real pairs that nobody here rendered: every simulator scored on held-out real Sdirt tiles
-(Canon EOS R6 II + RF50, split by photo), with 95 % intervals (the run docs/simulators.md reports).
+(Canon EOS R6 II + RF50, split by photo), with 95 % intervals (its last run: docs/results.md).
 
 Steps:
 
@@ -50,7 +50,7 @@ from neural_dp.evaluate import evaluate
 from neural_dp.registry import PAPER_F_NUMBERS, NeuralDPSimulator, SimulatorSpec, finetune, train
 from neural_dp.config import load_config
 from quality_simulators import EFFECTS
-from run_info import Stopwatch, machine
+from run_info import Stopwatch, machine, markdown_table, record_result
 
 ROOT = Path(__file__).resolve().parents[1]
 SDIRT = ROOT.parent / "shared" / "data" / "sdirt-canon-r6m2"
@@ -190,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     write_bytes_atomic(out / "table2_real.md", text.encode())
     print(text)
     print(f"{clock}; {machine()}")
+    record_result("table2-real", "Table 2 on real pairs (Sdirt, split by photo)", *markdown_table(text),
+                  notes=f"{note}\n\nPSNR differences: {words}\n\nCost: {clock}.")
     return 0
 
 
