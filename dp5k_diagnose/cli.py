@@ -57,9 +57,10 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
 
     Writes DIR/report.json and DIR/report.md (with figures); prints the cause and the gain.
     """
-    from .config import DetectConfig
+    from .config import DiagnoseConfig
+    from .data import auto_fit_pairs
     from .neural_reach import NeuralReachConfig
-    from .run import DiagnoseConfig, auto_fit_pairs, run_diagnose
+    from .run import run_diagnose
 
     if model is not None:
         if simulator is not None:
@@ -83,10 +84,9 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
                                 where="--sharp-f-number")
     n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out or (dataset / f"diagnose-{spec.folder_name()}")
-    detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)
-    res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
-                                                          sharp_f_number=sharp_n, threads=threads))
+    res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, nominal_shot_var=shot_var, nominal_read_sigma=read_sigma,
+                                                          neural=neural, sharp_f_number=sharp_n, threads=threads))
     print_summary(res, out)
 
 
@@ -97,27 +97,23 @@ def print_summary(res: dict, out: Path) -> None:
     sr = res.get("sharp_reading") or {}
     if sr.get("source") == "selected":
         click.echo(f"sharp: {sr['pairs_without_key']} pairs do not state sharp_f_number; read as "
-                   f"{'all-in-focus' if sr['f_number'] == 0 else 'f/%g' % sr['f_number']} (it predicts the detection pairs better)")
+                   f"{'all-in-focus' if sr['f_number'] == 0 else 'f/%g' % sr['f_number']} (the base model fits it better)")
     click.echo(f"cause: {res['cause']}")
-    if res["cause"] != "none":
-        click.echo(f"  {res['findings'][0]['explanation']}")
-    if len(res["causes"]) > 1:
-        click.echo("every cause, in order:")
-        for c in res["causes"]:
-            click.echo(f"  {c['step']}. {c['name']}: adds {c['gain_db']:+.3f} dB given the other causes (95% CI over held-out tiles [{c['gain_ci_db'][0]:+.3f}, "
-                       f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
-    for group in res.get("lookalikes") or []:  # not ``g``: the gain is printed below
-        for other, capture, kind in zip(group["names"][1:], group["captures"], group["kinds"]):
-            if kind == "also":
-                click.echo(f"look-alike: {group['names'][0]} may hide {other} (this data cannot tell whether it is present too; to tell, capture {capture})")
-            else:
-                why = f"; {group['names'][0]} is named: it fits fewer parameters" if other in (group.get("fewer_parameters_than") or []) else ""
-                click.echo(f"look-alike: {group['names'][0]} or {other} (indistinguishable on this data{why}; to tell them apart, capture {capture})")
+    for c in res["causes"]:
+        click.echo(f"  {c['step']}. {c['name']}: {c['explanation']}")
+        click.echo(f"     adds {c['gain_db']:+.3f} dB given the other causes (95% CI over held-out tiles [{c['gain_ci_db'][0]:+.3f}, "
+                   f"{c['gain_ci_db'][1]:+.3f}]); this step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB")
+    for group in res.get("lookalikes") or []:
+        click.echo(f"explained: {group['names'][1]} by {group['names'][0]} (to tell them apart, capture {group['captures'][0]})")
     for sp in res.get("suspects") or []:
-        click.echo(f"suspect, not named: {sp['name']}: held-out gain given the other causes {sp['gain_db']:+.3f} dB "
+        click.echo(f"suspect, not named: {sp['name']}: its signature differs, but the held-out gain is {sp['gain_db']:+.3f} dB "
                    f"(95% CI over held-out tiles [{sp['gain_ci_db'][0]:+.3f}, {sp['gain_ci_db'][1]:+.3f}])")
+    at = res.get("atlas") or {}
+    if at.get("unmeasured"):
+        click.echo(f"atlas: {len(at['unmeasured'])} of {at['cells']} cells not measured (too few pixels or pairs; nothing is named from them)")
     cov = res["fit_coverage"]
-    click.echo(f"fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, {cov['field_zones']} of {cov['field_zones_of']} field zones")
+    click.echo(f"atlas measured on {cov['atlas_pairs']} pairs; fits saw {cov['pairs']} pairs of {cov['scenes']} scenes, "
+               f"{cov['field_zones']} of {cov['field_zones_of']} field zones")
     click.echo(f"gain on {g['split']} (predictable pixels): PSNR {g['psnr_before']:.3f} -> {g['psnr_after']:.3f} dB "
                f"(95% CI of the gain over pairs [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}])")
     av = g.get("all_valid")

@@ -6,6 +6,7 @@ import math
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -209,3 +210,80 @@ def cat_batches(batches: Sequence[DPBatch]) -> DPBatch:
         kw[name] = None if vals[0] is None else torch.cat(vals)
     kw["pair_ids"] = tuple(pid for b in batches for pid in b.pair_ids)
     return DPBatch(**kw)
+
+
+SMALL_TRAIN_PAIRS = 8
+"""A train split of at most this many pairs is fitted whole by ``--fit-pairs auto``; a larger one fits
+:data:`DEFAULT_FIT_PAIRS` of its pairs (the atlas always reads every pair)."""
+DEFAULT_FIT_PAIRS = 12
+"""Fit pairs of ``--fit-pairs auto`` on a larger train split."""
+
+
+def auto_fit_pairs(dataset: str | Path) -> int | None:
+    """``--fit-pairs auto``: None (every train pair) where train has at most :data:`SMALL_TRAIN_PAIRS` pairs, else
+    :data:`DEFAULT_FIT_PAIRS`."""
+    return None if len(DatasetReader(dataset).ids("train")) <= SMALL_TRAIN_PAIRS else DEFAULT_FIT_PAIRS
+
+
+@dataclass
+class DiagnoseInput:
+    """A dataset as one diagnosis reads it, once.
+
+    Attributes:
+        root: the dataset folder.
+        reader: its reader (format v1).
+        splits: ``fit`` (the train pairs whose crops fit the models), ``held`` (the held-out pairs the gains are
+            measured on: test, else val, else train) and ``all`` (every pair, which the atlas reads), ids sorted.
+        held_split: the split the held-out pairs come from.
+        pairs: every pair, loaded, by id.
+        full: one :class:`Sample` per pair (the whole image), by id.
+        fit: the fit crops (several per batch).
+        unstated: ids of the pairs whose params.json does not state ``sharp_f_number``.
+    """
+
+    root: Path
+    reader: DatasetReader
+    splits: dict[str, list[str]]
+    held_split: str
+    pairs: dict[str, Pair]
+    full: dict[str, Sample]
+    fit: list[Sample]
+    unstated: frozenset[str]
+
+    def samples(self, ids: Sequence[str]) -> list[Sample]:
+        return [self.full[i] for i in ids]
+
+    def read_sharp_at(self, f_number: float | None) -> "DiagnoseInput":
+        """The input with ``sharp`` of the unstated pairs read at ``f_number`` (0 = all-in-focus; None: as is)."""
+        if f_number is None or not self.unstated:
+            return self
+        full = {i: read_sharp_at([s], f_number, self.unstated)[0] for i, s in self.full.items()}
+        return replace(self, full=full, fit=read_sharp_at(self.fit, f_number, self.unstated))
+
+
+def read_input(dataset: str | Path, fit_pairs: int | None, crop_px: int, crops_per_pair: int, seed: int) -> DiagnoseInput:
+    """Open ``dataset`` once and read every pair: the fit crops of (at most ``fit_pairs``) train pairs, one whole-image
+    sample per pair.
+
+    Raises:
+        BadInputError: an empty train split, or too few pairs to hold any out.
+    """
+    from dp5k_common.errors import BadInputError
+
+    reader = DatasetReader(dataset)
+    train = reader.ids("train")
+    val = reader.ids("val") if "val" in reader.splits else []
+    test = reader.ids("test") if "test" in reader.splits else []
+    if not train:
+        raise BadInputError("the dataset's train split is empty; diagnose fits on train", where=reader.root)
+    held_split = "test" if test else ("val" if val else "train")
+    held = test or val or train
+    rng = np.random.default_rng(seed)
+    order = [train[i] for i in rng.permutation(len(train))]
+    fit_ids = sorted(order[: len(order) if fit_pairs is None else fit_pairs])
+    every = sorted(set(train) | set(val) | set(test))
+    pairs = {pid: reader.load(pid) for pid in every}
+    full = {pid: full_samples([pairs[pid]])[0] for pid in every}
+    fit = crop_samples([pairs[pid] for pid in fit_ids], crop_px, crops_per_pair, rng)
+    return DiagnoseInput(Path(dataset), reader, {"fit": fit_ids, "held": sorted(held), "all": every}, held_split, pairs, full,
+                         fit, unstated_sharp_pairs(reader, every))

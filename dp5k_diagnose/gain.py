@@ -15,9 +15,17 @@ from dp5k_common.errors import BadInputError
 from dp5k_learn.metrics import view_metrics
 
 from .data import Sample
-from .tiles import tile_sums
 
 Predict = Callable[[Sample], tuple[Tensor, Tensor]]
+
+
+def tile_sums(x: Tensor, mask: Tensor, tile: int) -> tuple[Tensor, Tensor]:
+    """Per-tile sums of ``x`` (B, C, H, W) over channels and masked pixels, and per-tile counts of masked pixels x
+    channels, each (B * n_tiles_y * n_tiles_x,)."""
+    t = min(tile, x.shape[-2], x.shape[-1])
+    s = F.avg_pool2d(x.sum(1, keepdim=True) * mask, t, stride=t) * t * t
+    c = F.avg_pool2d(mask, t, stride=t) * t * t * x.shape[1]
+    return s.reshape(-1), c.reshape(-1)
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Write ``report.json`` and ``report.md`` (with PNG figures) of a diagnosis, atomically."""
+"""Write a diagnosis: ``report.json``, ``report.md`` with its figures, and ``atlas.npz`` (every file atomically)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,100 @@ import numpy as np  # noqa: E402
 from dp5k_common.io import atomic_path, write_json_atomic  # noqa: E402
 from dp5k_common.software import software_line  # noqa: E402
 
+from .atlas import COARSE, FINE, ZONES, Atlas, save_atlas  # noqa: E402
+
+VIEW_SET_LABEL = {"measured": "measured", "simulator": "simulator", "extended": "extended model", "peer": "peer"}
+
 
 def _save(fig: Any, path: Path) -> str:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, bbox_inches="tight", format="png")
     plt.close(fig)
     return path.name
+
+
+def _kernel_image(k: np.ndarray) -> np.ndarray:
+    """(3, K, K) -> (K, K) the channels' mean."""
+    return k.mean(0)
+
+
+def plot_atlas_by_coc(atlas: Atlas, path: Path, max_bins: int = 12) -> str:
+    """The whole field's kernels by CoC bin (columns), L and R of each view-set (rows), one colour scale per column."""
+    bins = atlas.measured_bins(-1)
+    if len(bins) > max_bins:
+        bins = [bins[i] for i in np.linspace(0, len(bins) - 1, max_bins).round().astype(int)]
+    names = [n for n in ("measured", "simulator", "extended", "peer") if n in atlas.names]
+    rows = [(n, v) for n in names for v in (0, 1)]
+    fig, axes = plt.subplots(len(rows), max(len(bins), 1), figsize=(1.25 * max(len(bins), 1), 1.3 * len(rows)), squeeze=False)
+    for j, b in enumerate(bins):
+        ks = {n: atlas.kernels((b, -1), n) for n in names}
+        vmax = max(float(np.abs(_kernel_image(ks[n][v])).max()) for n, v in rows) or 1.0
+        for i, (n, v) in enumerate(rows):
+            ax = axes[i, j]
+            ax.imshow(_kernel_image(ks[n][v]), cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+            ax.set_xticks([]); ax.set_yticks([])
+            if i == 0:
+                ax.set_title(f"CoC {atlas.cells[(b, -1)].mean_coc_px:+.1f}", fontsize=7)
+            if j == 0:
+                ax.set_ylabel(f"{VIEW_SET_LABEL.get(n, n)} {'LR'[v]}", fontsize=7)
+    fig.suptitle("PSF atlas, whole field: each view's kernel from sharp, by signed CoC (px); red = light, blue = negative", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_atlas_by_zone(atlas: Atlas, path: Path) -> str | None:
+    """Each field zone's kernels (3 x 3 grid per panel) at the most populated zone bin behind and in front of focus,
+    measured and simulator, L and R."""
+    zone_bins: dict[int, float] = {}
+    for (b, z), c in atlas.cells.items():
+        if z >= 0 and c.measured and b != 0:
+            zone_bins[b] = zone_bins.get(b, 0.0) + float(c.pixels.sum())
+    picks = [b for b in (max((b for b in zone_bins if b > 0), key=zone_bins.get, default=None),
+                         max((b for b in zone_bins if b < 0), key=zone_bins.get, default=None)) if b is not None]
+    names = [n for n in ("measured", "simulator") if n in atlas.names]
+    if not picks or not names:
+        return None
+    panels = [(b, n, v) for b in picks for n in names for v in (0, 1)]
+    fig, axes = plt.subplots(ZONES, ZONES * len(panels), figsize=(0.9 * ZONES * len(panels), 0.95 * ZONES), squeeze=False)
+    for p, (b, n, v) in enumerate(panels):
+        keys = [(b, z) for z in range(ZONES * ZONES) if (b, z) in atlas.cells and atlas.cells[(b, z)].measured]
+        vmax = max((float(np.abs(_kernel_image(atlas.kernels(k, n)[v])).max()) for k in keys), default=1.0) or 1.0
+        for z in range(ZONES * ZONES):
+            zy, zx = divmod(z, ZONES)
+            ax = axes[zy, p * ZONES + zx]
+            ax.set_xticks([]); ax.set_yticks([])
+            if (b, z) in keys:
+                ax.imshow(_kernel_image(atlas.kernels((b, z), n)[v]), cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+            else:
+                ax.set_facecolor("0.85")
+            if zy == 0 and zx == 1:
+                lo, hi = COARSE.edges(b)
+                ax.set_title(f"{VIEW_SET_LABEL.get(n, n)} {'LR'[v]}, CoC {lo:g}..{hi:g}", fontsize=7)
+    fig.suptitle("PSF atlas by field zone (3 x 3 over the frame; grey: not measured)", fontsize=8)
+    return _save(fig, path)
+
+
+def plot_signatures(sigs: dict[str, dict[str, Any]], named: set[str], path: Path) -> str:
+    """Each effect's strongest value over its minimum, with its interval; red where the effect was named."""
+    rows = []
+    for e, s in sigs.items():
+        vals = [v for v in s["values"] if v["value"] is not None and v["min_effect"]]
+        if not vals:
+            rows.append((e, 0.0, 0.0, 0.0, s.get("unmeasured") or "not measured"))
+            continue
+        v = max(vals, key=lambda v: abs(v["value"]) / v["min_effect"])
+        lo, hi = (x if x is not None else np.nan for x in v["interval95"])
+        rows.append((e, abs(v["value"]) / v["min_effect"], abs(lo) / v["min_effect"] if np.isfinite(lo) else 0.0,
+                     abs(hi) / v["min_effect"] if np.isfinite(hi) else 0.0, v["name"]))
+    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1))
+    ys = np.arange(len(rows))[::-1]
+    for y, (e, val, lo, hi, what) in zip(ys, rows):
+        ax.barh(y, val, color="tab:red" if e in named else "tab:gray")
+        ax.plot([min(lo, hi), max(lo, hi)], [y, y], color="k", lw=1)
+        ax.text(max(val, hi) + 0.05, y, what, fontsize=6, va="center")
+    ax.axvline(1.0, color="k", ls="--", lw=0.8)
+    ax.set_yticks(ys, [r[0] for r in rows], fontsize=7)
+    ax.set_xlabel("|measured - simulator| over the effect's minimum (its strongest value; bar: 95 % interval)", fontsize=7)
+    return _save(fig, path)
 
 
 def plot_residuals(tables: dict[str, Any], path: Path, title: str) -> str:
@@ -43,240 +131,128 @@ def plot_residuals(tables: dict[str, Any], path: Path, title: str) -> str:
     return _save(fig, path)
 
 
-def plot_disparity(disp: dict[str, Any], path: Path, title: str) -> str:
-    fig, ax = plt.subplots(figsize=(5, 4))
-    c = np.asarray(disp["coc_px"]); m = np.asarray(disp["measured_px"]); p = np.asarray(disp["predicted_px"])
-    ax.scatter(c, m, s=6, alpha=0.5, label="measured")
-    ax.scatter(c, p, s=6, alpha=0.5, label="model")
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlabel("signed CoC (px)"); ax.set_ylabel("R relative to L (px)")
-    ax.set_title(title + ": DP disparity vs CoC", fontsize=9)
-    ax.legend(fontsize=7)
-    return _save(fig, path)
+def _where(zone: int) -> str:
+    return "whole field" if zone < 0 else f"zone {zone}"
 
 
-def plot_ratio(ratio: dict[str, Any], path: Path, title: str) -> str:
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3))
-    for ax, k in zip(axes, ("x", "y")):
-        t = ratio[k]
-        nan = lambda v: [np.nan if x is None else x for x in v]  # noqa: E731
-        ax.plot(t["bin_center"], nan(t["measured"]), "o-", label="measured")
-        ax.plot(t["bin_center"], nan(t["predicted"]), "s--", label="model")
-        ax.set_xlabel(f"field {k}"); ax.set_ylabel("mean L / mean R")
-    axes[0].legend(fontsize=7)
-    fig.suptitle(title + ": L/R brightness ratio across the field", fontsize=9)
-    return _save(fig, path)
+def _num(v: Any) -> str:
+    return "-" if v is None else f"{v:.4g}"
 
 
-def plot_psfs(psfs: list[dict[str, Any]], path: Path, title: str) -> str:
-    n = max(len(psfs), 1)
-    fig, axes = plt.subplots(n, 4, figsize=(7, 1.8 * n), squeeze=False)
-    for row, e in zip(axes, psfs):
-        for ax, name, lab in zip(row, ("L", "R", "PL", "PR"), ("meas L", "meas R", "model L", "model R")):
-            ax.imshow(np.asarray(e[name]), cmap="magma")
-            ax.set_xticks([]); ax.set_yticks([])
-            ax.set_title(f"{lab} c={e['coc_px']:.1f} {e['zone']}", fontsize=6)
-    fig.suptitle(title + ": PSFs estimated from data (Wiener) per CoC bin and field zone", fontsize=8)
-    return _save(fig, path)
-
-
-def plot_findings(findings: list[dict[str, Any]], path: Path) -> str:
-    fig, ax = plt.subplots(figsize=(7, 3))
-    names = [f["effect"] for f in findings]
-    vals = [f["effect_size"] for f in findings]
-    colors = ["tab:red" if f["detected"] else "tab:gray" for f in findings]
-    ax.barh(names[::-1], vals[::-1], color=colors[::-1])
-    ax.set_xlabel("effect size (share of the error beyond noise removed; noise: excess variance)")
-    ax.tick_params(labelsize=7)
-    return _save(fig, path)
-
-
-def sharp_reading_lines(sr: dict[str, Any] | None) -> list[str]:
-    """report.md lines on how ``sharp`` was read where params.json does not say (none when every pair does)."""
-    if not sr or sr.get("source") == "params.json":
-        return []
-    name = lambda n: "all-in-focus" if float(n) == 0 else f"f/{float(n):g}"  # noqa: E731
-    line = f"`sharp` of {sr['pairs_without_key']} pairs without `sharp_f_number` read as **{name(sr['f_number'])}**"
-    if sr.get("source") == "selected":
-        tried = ", ".join(f"{name(k)}: MSE {v:.3g}, cause `{sr['causes'].get(k)}`" for k, v in sr["detect_mse"].items())
-        line += f", the reading whose diagnosis predicts the detection pairs better ({tried})."
-    else:
-        line += " (`--sharp-f-number`)."
-    return [line, ""]
-
-
-def _num(v: float) -> str:
-    return f"{v:.4g}"
-
-
-def chain_text(causes: list[dict[str, Any]]) -> str:
-    """`a` -> `b` -> ...: the causes' names in order."""
-    return " -> ".join(f"`{c['name']}`" for c in causes)
-
-
-def selection_lines(selection: dict[str, Any]) -> list[str]:
-    """report.md's account of how the causes were chosen (report.json ``selection``): the screen, the effects the
-    full model held and each elimination."""
-    scr = selection.get("screen") or {}
-    if not scr:
-        return []
-    share = scr.get("share", {})
-    lines = ["How they were chosen: a first-order screen around the base model (share of the systematic error one "
-             "Gauss-Newton step predicts each effect removes: " + ", ".join(f"`{k}` {v:.3f}" for k, v in sorted(share.items(), key=lambda kv: -kv[1]))
-             + f"); the full model held {', '.join(f'`{n}`' for n in (selection.get('full_model') or {}).get('components', {})) or 'nothing'}."]
-    gone = []
-    for r in selection.get("rounds") or []:
-        for t in r.get("refitted") or []:
-            if not t["passed"]:
-                gone.append(f"`{t['effect']}` (given the others {t['effect_size']:+.3f}, p {t['p_value']:.2g})")
-                break
-    if gone:
-        lines[-1] += " Removed, weakest first, when the detection pairs did not need them: " + ", ".join(gone) + "."
+def signature_lines(result: dict[str, Any]) -> list[str]:
+    """report.md's table of every effect's signature against the simulator (before any cause was added)."""
+    named = {c["name"] for c in result.get("causes") or []}
+    suspects = {s["name"] for s in result.get("suspects") or []}
+    explained = {g["names"][1]: g["names"][0] for g in result.get("lookalikes") or []}
+    lines = ["## Signatures: the measured atlas against the simulator's", "",
+             "Each effect changes its own summary of the kernels (docs/diagnose.md, \"Signatures\"); the table gives it "
+             "measured on the data's kernels and on the simulator's renders of the same pairs (with the views' measured "
+             "noise), their difference with its 95 % interval (bootstrap over pairs) and the smallest difference that "
+             "counts. An effect differs when a value is significant (Bonferroni over the effect's values) and at least its "
+             "minimum; it is then tried as a cause.", "",
+             "| effect | value | measured | simulator | difference [95 %] | p | minimum | decision |", "|---|---|---|---|---|---|---|---|"]
+    for e, s in (result.get("signatures") or {}).items():
+        decision = ("named" if e in named else f"explained by `{explained[e]}`" if e in explained else "suspect" if e in suspects
+                    else "differs" if s["differs"] else "no difference")
+        if s.get("unmeasured"):
+            lines.append(f"| `{e}` | - | - | - | - | - | - | not measured: {s['unmeasured']} |")
+            continue
+        for i, v in enumerate(s["values"]):
+            lo, hi = v["interval95"]
+            lines.append(f"| {'`' + e + '`' if i == 0 else ''} | {v['name']} ({v['unit']}) | {_num(v['measured'])} | {_num(v['simulator'])} | "
+                         f"{_num(v['value'])} [{_num(lo)}, {_num(hi)}] | {_num(v['p_value'])} | {v['min_effect']:g} | {decision if i == 0 else ''} |")
     return lines + [""]
 
 
-def suspects_lines(result: dict[str, Any]) -> list[str]:
-    """report.md's look-alikes and suspects (report.json ``lookalikes``, ``suspects``)."""
-    lines: list[str] = []
-    for g in result.get("lookalikes") or []:
-        first, others = g["names"][0], g["names"][1:]
-        for o, cap, cc, lost, kind in zip(others, g["captures"], g["correlation"], g["effect_size_lost"], g["kinds"]):
-            if kind == "also":
-                lines += [f"**`{first}` may hide `{o}`.** Alone `{o}` would explain enough of the error to be named, but nothing "
-                          f"beyond what `{first}` explains (first-order correlation of their effects {cc:.2f}): this data cannot tell "
-                          f"whether `{o}` is present too. To tell, capture {cap}.", ""]
-                continue
-            simpler = f" `{first}` is named: it fits fewer parameters." if o in (g.get("fewer_parameters_than") or []) else ""
-            lines.append(f"**`{first}` or `{o}`: indistinguishable on this data.** Refitted in `{first}`'s place, `{o}` explains what it "
-                         f"explained and predicts the detection pairs as well (loses {lost:+.3f} of the systematic error; first-order "
-                         f"correlation of their effects {cc:.2f}).{simpler} To tell them apart, capture {cap}.")
-            lines.append("")
-    for sp in result.get("suspects") or []:
-        lo, hi = sp["gain_ci_db"]
-        lines += [f"**Suspect, not named: `{sp['name']}`** ({sp['explanation']}): {sp['why']} (gain {sp['gain_db']:+.3f} dB).", ""]
-    return lines
-
-
-def causes_lines(result: dict[str, Any]) -> list[str]:
-    """report.md's chain of causes (report.json ``causes``), the measured noise model and what the fit saw."""
-    lines = ["## Causes, in order", "",
-             "Each cause was tested given every other cause (effect size: the share of the base model's systematic error "
-             "that removing it from the final model gives back on the detection pairs, the others refitted; p: "
-             "signed-rank test over pairs, Hochberg-corrected over the causes). A cause is named only when its held-out gain "
-             "given the others has a 95 % CI above 0; otherwise it is a suspect. Held-out PSNR gains, 95 % bootstrap CI "
-             "over the 32 px tiles within each held-out pair (what these captures show beyond their noise; in brackets "
-             "after *pairs*, the CI over pairs: how the gain varies from capture to capture): *given the others* is what the cause adds to a model holding every other cause (the final model "
-             "against it without the cause, refitted), *step* what it adds over the steps before it; the step gains add "
-             "up to the cumulative one. Parameters are those of the final model, all chosen effects refitted "
-             "together, with 95 % intervals clustered over the fit pairs. `noise` comes last: a prediction is an "
-             "expectation, so modelling noise cannot raise PSNR.", ""]
+def cause_lines(result: dict[str, Any]) -> list[str]:
+    """report.md's causes in order, each in a sentence, with its gains and parameters."""
     causes = result.get("causes") or []
+    lines = ["## Causes, in order", ""]
     if not causes:
-        lines += ["No effect of the vocabulary is significant: `none`.", ""]
-    else:
-        lines += ["| step | effect | effect size | p-value | gain given the others (dB) [95 % CI] | step gain (dB) [95 % CI] | cumulative (dB) | parameters [95 % interval] |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for c in causes:
-            iv = c.get("param_intervals", {})
-            par = ", ".join(f"{k}={_num(v)}" + (f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else "")
-                            for k, v in c["params"].items() if isinstance(v, float))
-            lo, hi = c["gain_ci_db"]
-            plo, phi = c.get("gain_ci_pairs_db", (lo, hi))
-            slo, shi = c["step_gain_ci_db"]
-            lines.append(f"| {c['step']} | `{c['name']}` | {c['effect_size']:.3f} | {c['p_value']:.2g} | {c['gain_db']:+.3f} [{lo:+.3f}, {hi:+.3f}] "
-                         f"(pairs [{plo:+.3f}, {phi:+.3f}]) "
-                         f"| {c['step_gain_db']:+.3f} [{slo:+.3f}, {shi:+.3f}] | {c['cumulative_gain_db']:+.3f} | {par} |")
-        lines.append("")
-    lines += suspects_lines(result)
-    lines += selection_lines(result.get("selection") or {})
-    nm = result.get("noise_model") or {}
-    if nm.get("measured"):
-        iv = nm.get("intervals", {})
-        rng = lambda k: f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else ""  # noqa: E731
-        lines += [f"Measured view noise (against the final model): variance = shot_var I + read_sigma^2 with shot_var "
-                  f"{_num(nm['shot_var'])}{rng('shot_var')}, read_sigma {_num(nm['read_sigma'])}{rng('read_sigma')} (linear units), "
-                  f"{nm['variance_ratio']:.2f}{rng('variance_ratio')} x the nominal sensor's (shot_var {_num(nm['nominal']['shot_var'])}, "
-                  f"read_sigma {_num(nm['nominal']['read_sigma'])}); excess {'significant' if nm['excess_significant'] else 'not significant'} "
-                  f"(p {nm['excess_p_value']:.2g}).", ""]
-    cov = result.get("fit_coverage") or {}
-    if cov:
-        x0, x1, y0, y1 = cov["field_box"]
-        lines += [f"The fits saw {cov['pairs']} pairs of {cov['scenes']} scenes ({cov['crops']} crops), {cov['field_zones']} of "
-                  f"{cov['field_zones_of']} field zones, field x {x0:+.2f}..{x1:+.2f}, y {y0:+.2f}..{y1:+.2f}; field-dependent "
-                  f"ranges are given over that field only.", ""]
+        return lines + ["No effect's signature differs beyond its interval and its minimum and gains on the held-out pairs: `none`.", ""]
+    lines += ["Each cause's signature differed from the simulator's, and the model extended by it predicted the held-out pairs "
+              "better (PSNR gain, 95 % interval over 32 px tiles resampled within each pair). *Given the others*: the final "
+              "model against it without the cause, refitted; *step*: over the model of the causes before it. `noise` is "
+              "measured, not fitted (a prediction is an expectation): its gains are 0.", ""]
+    for c in causes:
+        sig = c.get("signature") or {}
+        v = max(sig.get("values") or [{}], key=lambda v: abs(v.get("value") or 0) / (v.get("min_effect") or 1), default={})
+        why = (f" Its signature: {v['name']} {_num(v['value'])} {v['unit']} beyond the simulator's (95 % "
+               f"[{_num(v['interval95'][0])}, {_num(v['interval95'][1])}], minimum {v['min_effect']:g})." if v.get("name") else "")
+        lo, hi = c["gain_ci_db"]
+        iv = c.get("param_intervals", {})
+        par = ", ".join(f"{k} {_num(x)}" + (f" [{_num(iv[k][0])}, {_num(iv[k][1])}]" if k in iv else "")
+                        for k, x in c["params"].items() if isinstance(x, float))
+        lines += [f"{c['step']}. **`{c['name']}`**: {c['explanation']}.{why} Held-out gain given the others {c['gain_db']:+.3f} dB "
+                  f"[{lo:+.3f}, {hi:+.3f}], step {c['step_gain_db']:+.3f} dB, cumulative {c['cumulative_gain_db']:+.3f} dB. "
+                  f"Parameters: {par}.", ""]
     return lines
 
 
-def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) -> None:
-    """``out/report.json`` (the contract of issue 7 plus analysis tables) and ``out/report.md`` with figures."""
+def lookalike_lines(result: dict[str, Any]) -> list[str]:
+    lines = []
+    for g in result.get("lookalikes") or []:
+        lines += [f"**`{g['names'][1]}` explained by `{g['names'][0]}`.** {g['why']}. To tell them apart, capture {g['captures'][0]}.", ""]
+    for s in result.get("suspects") or []:
+        lines += [f"**Suspect, not named: `{s['name']}`.** {s['why']}.", ""]
+    return lines
+
+
+def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any], atlas: Atlas) -> None:
+    """``out/report.json`` (the result, the analysis tables and the figures' names), ``out/report.md`` with figures, and
+    ``out/atlas.npz``."""
     out.mkdir(parents=True, exist_ok=True)
-    figs = {}
+    save_atlas(out / "atlas.npz", atlas)
+    figs: dict[str, str] = {"atlas_by_coc": plot_atlas_by_coc(atlas, out / "atlas_by_coc.png")}
+    z = plot_atlas_by_zone(atlas, out / "atlas_by_zone.png")
+    if z:
+        figs["atlas_by_zone"] = z
+    named = {c["name"] for c in result.get("causes") or []}
+    figs["signatures"] = plot_signatures(result.get("signatures") or {}, named, out / "signatures.png")
     for stage in ("before", "after"):
-        a = analysis.get(stage)
-        if not a:
-            continue
-        figs[f"residuals_{stage}"] = plot_residuals(a["residuals"], out / f"residuals_{stage}.png", stage)
-        figs[f"disparity_{stage}"] = plot_disparity(a["disparity"], out / f"disparity_{stage}.png", stage)
-        figs[f"lr_ratio_{stage}"] = plot_ratio(a["lr_ratio"], out / f"lr_ratio_{stage}.png", stage)
-        if a.get("psfs"):
-            figs[f"psfs_{stage}"] = plot_psfs(a["psfs"], out / f"psfs_{stage}.png", stage)
-    figs["findings"] = plot_findings(result["findings"], out / "findings.png")
-    full = dict(result)
-    full["analysis"] = analysis
-    full["figures"] = figs
+        if analysis.get(stage):
+            figs[f"residuals_{stage}"] = plot_residuals(analysis[stage]["residuals"], out / f"residuals_{stage}.png", stage)
+    full = {**result, "analysis": analysis, "figures": figs}
     write_json_atomic(out / "report.json", full)
     g = result["gain"]
-    lines = [
-        f"# dp5k diagnose: `{result['model']}` on `{result['dataset']}`",
-        "",
-        f"**Cause: `{result['cause']}`**" + (f": {result['findings'][0]['explanation']}." if result["cause"] != "none" else ": no effect of the vocabulary is significant."),
-        "",
-        *([f"**Every cause, in order: {chain_text(result['causes'])}**", ""] if len(result.get("causes") or []) > 1 else []),
-        f"Base model fitted on train: {json.dumps({k: round(v, 4) for k, v in result.get('base_params', {}).items()})}",
-        "",
-        *sharp_reading_lines(result.get("sharp_reading")),
-        *causes_lines(result),
-        "## Every effect of the vocabulary",
-        "",
-        "Effect size: the share of the base model's systematic error (its squared error less the views' measured "
-        "white noise) that the effect removes on detection pairs no fit saw, given the other effects of the model "
-        "it was tested in (named: the final model; eliminated: the model it was removed from); screened out: the "
-        "share a first-order step predicted; `noise`: the excess noise variance over a nominal sensor's.",
-        "",
-        "| effect | named | stage | effect size | statistic (z) | p-value | parameters | explanation |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for f in result["findings"]:
-        par = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in f["params"].items())
-        lines.append(f"| {f['effect']} | {'yes' if f['detected'] else 'no'} | {f.get('stage', '')} | {f['effect_size']:.4f} | {f['statistic']:.2f} | "
-                     f"{f['p_value']:.2e} | {par} | {f['explanation']} |")
-    lines += ["", f"![findings]({figs['findings']})", "", f"## Gain on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs)", "",
-              "Masked over the predictable pixels (valid, out of blur reach of the frame border and of depth edges, as in "
-              "the fit and the tests); the last columns take every valid pixel.", "",
-              "| metric | before | after | before (all valid) | after (all valid) |", "|---|---|---|---|---|"]
+    causes = result.get("causes") or []
+    chain = " -> ".join("`" + c["name"] + "`" for c in causes)
+    head = (f"**Causes, in order: {chain}**" if causes
+            else "**Cause: `none`**: no effect's signature differs from the simulator's and gains on the held-out pairs.")
+    cov = result.get("fit_coverage") or {}
+    at = result.get("atlas") or {}
+    lines = [f"# dp5k diagnose: `{result['model']}` on `{result['dataset']}`", "", head, "",
+             f"The atlas was measured on {at.get('pairs', '?')} pairs ({at.get('measured', '?')} of {at.get('cells', '?')} cells measured; "
+             f"`atlas.npz`); the models were fitted on {cov.get('crops', '?')} crops of {cov.get('pairs', '?')} train pairs; gains are "
+             f"on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs).", "",
+             f"Base model fitted on train: {json.dumps({k: round(v, 4) for k, v in result.get('base_params', {}).items()})}", "",
+             *cause_lines(result), *lookalike_lines(result), *signature_lines(result),
+             f"![signatures]({figs['signatures']})", "", "## The PSF atlas", "",
+             "Kernels measured from the sharp image to each view by regularised least squares over every pair "
+             "(docs/diagnose.md, \"The atlas\"), beside the simulator's, measured the same way on its renders of the same pairs.", "",
+             f"![atlas by CoC]({figs['atlas_by_coc']})", ""]
+    if "atlas_by_zone" in figs:
+        lines += [f"![atlas by zone]({figs['atlas_by_zone']})", ""]
+    unmeasured = at.get("unmeasured") or []
+    if unmeasured:
+        lines += [f"{len(unmeasured)} cells are not measured (nothing is named from them): " + "; ".join(
+            f"CoC {u['coc_px'][0]:g}..{u['coc_px'][1]:g} {_where(u['zone'])}: {u['why']}"
+            for u in unmeasured[:8]) + (" ..." if len(unmeasured) > 8 else "") + ".", ""]
     av = g.get("all_valid", {})
+    lines += [f"## Gain on the held-out `{g['split']}` split ({g.get('n_pairs', '?')} pairs)", "",
+              "| metric | before | after | before (all valid) | after (all valid) |", "|---|---|---|---|---|"]
     for label, key, fmt in (("masked PSNR (dB)", "psnr", ".3f"), ("masked SSIM", "ssim", ".4f"), ("masked MAE", "mae", ".5f")):
         cells = [format(d[f"{key}_{w}"], fmt) if f"{key}_{w}" in d else "-" for d in (g, av) for w in ("before", "after")]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines += ["", f"PSNR gain {g['psnr_after'] - g['psnr_before']:+.3f} dB, 95 % bootstrap CI over pairs [{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}]"
-              + (f"; over all valid pixels {av['psnr_after'] - av['psnr_before']:+.3f} dB [{av['psnr_gain_ci95'][0]:+.3f}, {av['psnr_gain_ci95'][1]:+.3f}]" if av else "")
-              + ".", ""]
-    if "note" in g:
-        lines += [g["note"], ""]
+    lines += ["", f"PSNR gain {g['psnr_after'] - g['psnr_before']:+.3f} dB, 95 % bootstrap CI over pairs "
+              f"[{g['psnr_gain_ci95'][0]:+.3f}, {g['psnr_gain_ci95'][1]:+.3f}].", ""]
     for stage in ("before", "after"):
-        a = analysis.get(stage)
-        if not a:
-            continue
-        d = a["disparity"]
-        lines += [f"## What the {'base' if stage == 'before' else 'extended'} model gets wrong ({stage})", "",
-                  f"![residuals]({figs[f'residuals_{stage}']})", "",
-                  f"Disparity vs CoC: measured slope {d.get('measured_slope_px_per_coc', float('nan')):.4f} px/px, model {d.get('predicted_slope_px_per_coc', float('nan')):.4f} px/px over {d['n_tiles']} tiles.", "",
-                  f"![disparity]({figs[f'disparity_{stage}']}) ![ratio]({figs[f'lr_ratio_{stage}']})", ""]
-        if f"psfs_{stage}" in figs:
-            lines += ["| CoC (px) | zone | tiles | measured L-R separation (px) | model separation (px) |", "|---|---|---|---|---|"]
-            for e in a["psfs"]:
-                lines.append(f"| {e['coc_px']:.2f} | {e['zone']} | {e['n_tiles']} | {e['measured_separation_px']:.3f} | {e['model_separation_px']:.3f} |")
-            lines += ["", f"![psfs]({figs[f'psfs_{stage}']})", ""]
+        if f"residuals_{stage}" in figs:
+            lines += [f"![residuals {stage}]({figs[f'residuals_{stage}']})", ""]
+    nm = result.get("noise_model") or {}
+    if nm.get("measured"):
+        lines += [f"Measured view noise: variance = shot_var I + read_sigma^2 with shot_var {_num(nm['shot_var'])}, read_sigma "
+                  f"{_num(nm['read_sigma'])} (linear units), {nm['variance_ratio']:.2f} x the nominal sensor's.", ""]
     ne = result.get("neural_extension")
     if ne:
         from .neural_reach import format_table
@@ -284,10 +260,8 @@ def write_report(out: Path, result: dict[str, Any], analysis: dict[str, Any]) ->
         gc = ne["gain_vs_control"]
         lines += ["## The learned model's reach and its structural extension", "",
                   f"{ne['extension'].get('kind', 'multi-scale kernels')}: reach {ne['extension'].get('reach_px_before')} -> "
-                  f"{ne['extension'].get('reach_px_after')} px; the extended network starts equal to the checkpoint "
-                  f"(max difference {ne['extension'].get('init_max_abs_diff')}) and is fine-tuned beside an equally fine-tuned control.", "",
-                  f"PSNR gain over the control on `{ne.get('split')}`: {gc['psnr_after'] - gc['psnr_before']:+.3f} dB "
-                  f"(95 % CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}]).", "",
+                  f"{ne['extension'].get('reach_px_after')} px; PSNR gain over an equally fine-tuned control on `{ne.get('split')}`: "
+                  f"{gc['psnr_after'] - gc['psnr_before']:+.3f} dB (95 % CI [{gc['psnr_gain_ci95'][0]:+.3f}, {gc['psnr_gain_ci95'][1]:+.3f}]).", "",
                   format_table(ne), ""] + [f"![neural reach]({f})" for f in ne.get("figures", [])] + [""]
     if result.get("software"):
         lines += [f"_Software: {software_line(result['software'])}._", ""]

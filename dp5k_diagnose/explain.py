@@ -1,15 +1,12 @@
-"""What diagnose says about one effect: a :class:`Finding` (its test, fitted parameters and a sentence), and
-whether the data can show a colour effect at all (:func:`colour_contrast`)."""
+"""What diagnose says about a named cause in a sentence (:func:`explanation`), and whether the data can show a colour
+effect at all (:func:`colour_contrast`)."""
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch.nn.functional as F
 
-from neural_dp.registry import BaseModel
 
 from .data import Sample
 
@@ -23,59 +20,8 @@ EXPLAIN = {
     "psf_profile": "the blur disc is not uniform: radial weight 1 {rim_gain2:+.2f} (rho/R)^2 {rim_gain:+.2f} (rho/R)^4",
     "front_back_asymmetry": "blur in front of focus differs from blur behind it: back rim gain {back_rim_gain:+.2f}, front centre gain {front_center_gain:+.2f}, front size x{front_size_factor:.3f}; spherical aberration {spherical_mm_f1:+.2f} mm at f/1 (zone CoC shift, / N^3)",
     "misregistration": "the views are shifted against the sharp image: left ({left_dx_px:+.2f}, {left_dy_px:+.2f}) px, right ({right_dx_px:+.2f}, {right_dy_px:+.2f}) px",
-    "noise": "the views carry {variance_ratio:.1f} x the white-noise variance of a nominal sensor in flat regions: shot variance {shot_var:.2e} per unit intensity, read sigma {read_sigma:.2e} ({excess_fraction:.0%} of the base model's residual is excess noise)",
+    "noise": "the views carry {variance_ratio:.1f} x the white-noise variance of a nominal sensor in flat regions: shot variance {shot_var:.2e} per unit intensity, read sigma {read_sigma:.2e}",
 }
-
-
-@dataclass
-class Finding:
-    effect: str
-    statistic: float
-    p_value: float
-    effect_size: float
-    detected: bool
-    params: dict[str, float]
-    explanation: str
-    model: BaseModel | None = field(default=None, repr=False)
-    tile_sse: np.ndarray | None = field(default=None, repr=False)
-    """Per-tile squared errors of ``model`` on the detection set (:func:`tile_mse`), kept for the nested test."""
-    held: tuple[str, ...] = ()
-    """Parameters of the effect's component held neutral: the fit data does not show where they act."""
-    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
-    """95 % intervals of parameters, by name (the noise model's: bootstrap over pairs)."""
-    stage: str = ""
-    """Where the selection left the effect: "named", "eliminated", "suspect", "look-alike" (a look-alike of
-    fewer parameters is named in its place), "screened out", "not testable" or "measured" (``noise``)."""
-    testable: bool = True
-    """False when the data cannot show the effect at all (a colour effect on data with R = G = B); such a
-    finding is never detected."""
-
-    @property
-    def rank_score(self) -> float:
-        """The share of the base model's residual MSE this effect explains (noise: the excess noise's share;
-        its ``effect_size`` is a variance ratio on another scale)."""
-        if self.effect == "noise":
-            return float(self.params.get("excess_fraction", 0.0))
-        return float(self.effect_size)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "effect": self.effect,
-            "statistic": _finite(self.statistic),
-            "p_value": _finite(self.p_value, 1.0),
-            "effect_size": _finite(self.effect_size),
-            "detected": bool(self.detected),
-            "params": {k: ([_finite(x) for x in v] if isinstance(v, (list, tuple)) else _finite(v)) for k, v in self.params.items()},
-            "explanation": self.explanation,
-            "testable": bool(self.testable),
-            "stage": self.stage,
-            "param_intervals": {k: [_finite(lo), _finite(hi)] for k, (lo, hi) in self.intervals.items()},
-        }
-
-
-def _finite(x: float, default: float = 0.0) -> float:
-    x = float(x)
-    return x if math.isfinite(x) else default
 
 
 def explanation(name: str, params: dict[str, Any], held: tuple[str, ...] | list[str] = ()) -> str:
@@ -125,10 +71,3 @@ def colour_contrast(samples: list[Sample]) -> float:
         if lum > 0:
             worst = max(worst, chroma / lum)
     return worst
-
-
-def not_testable(name: str, contrast: float) -> Finding:
-    """The finding of a colour effect on grey data: not testable, never detected."""
-    text = (f"not testable: the data has no colour (R = G = B within noise; colour contrast {contrast:.1e} <= "
-            f"{GREY_MAX_COLOUR_CONTRAST:g}), and {name} acts between colour channels")
-    return Finding(name, 0.0, 1.0, 0.0, False, {}, text, None, testable=False, stage="not testable")

@@ -1,0 +1,111 @@
+r"""Measuring: the camera's atlas from the measured views, a simulator's atlas from its renders of the same pairs, and
+every effect's signature between the two (:class:`Measurement`).
+
+The simulator's renders get the views' own measured noise (shot + read, drawn from a seeded generator) before they
+are measured: the kernels' moments are ratios, whose noise bias would otherwise read as a difference between two
+atlases that differ only in noise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from neural_dp.registry import BaseModel
+
+from .atlas import Atlas, AtlasMeasurer, PairImages, Views
+from .config import DiagnoseConfig
+from .data import Sample
+from .explain import colour_contrast, GREY_MAX_COLOUR_CONTRAST
+from .noise import NoiseMeasure, measure_noise
+from .signatures import (Pairing, Signature, Value, chromatic_signature, disparity_signature, field_signature, focus_signature,
+                         front_back_signature, lr_gain_signature, misregistration_signature, profile_signature)
+
+Render = Callable[[Sample], tuple[torch.Tensor, torch.Tensor]]
+
+
+def pair_images(samples: Sequence[Sample]) -> list[PairImages]:
+    """The atlas's view of whole-image samples (one pair each)."""
+    return [PairImages(s.batch.pair_ids[0], s.batch.sharp[0].numpy(), s.batch.coc_px[0, 0].numpy(), s.score[0, 0].numpy(),
+                       s.field[0].numpy()) for s in samples]
+
+
+def measured_views(samples: Sequence[Sample]) -> list[Views]:
+    return [(s.batch.left[0].numpy(), s.batch.right[0].numpy()) for s in samples]
+
+
+def rendered_views(render: Render, samples: Sequence[Sample], noise: tuple[float, float] | None, seed: int) -> list[Views]:
+    """Each pair rendered, with white noise of variance ``shot I + read^2`` added (``noise``; None: none) from a
+    generator seeded per pair."""
+    out = []
+    for i, s in enumerate(samples):
+        with torch.no_grad():
+            l, r = render(s)
+        views = [l[0].numpy().astype(np.float32), r[0].numpy().astype(np.float32)]
+        if noise is not None:
+            rng = np.random.default_rng([seed, 7919, i])
+            shot, read = noise
+            views = [v + rng.standard_normal(v.shape).astype(np.float32) * np.sqrt(np.maximum(shot * np.clip(v, 0, None) + read * read, 0))
+                     for v in views]
+        out.append((views[0], views[1]))
+    return out
+
+
+def noise_signature(noise: NoiseMeasure, cfg: DiagnoseConfig) -> Signature:
+    """The views' white-noise variance over the nominal sensor's, minus 1 (its minimum: ``noise_min_ratio`` - 1)."""
+    if not noise.measured:
+        return Signature("noise", unmeasured=noise.note)
+    return Signature("noise", [Value("variance_ratio_minus_1", "1", noise.variance_ratio - 1.0, noise.ratio_boot - 1.0,
+                                     cfg.noise_min_ratio - 1.0, noise.variance_ratio, 1.0)])
+
+
+@dataclass
+class Measurement:
+    """The measured side of a diagnosis, measured once, and the simulator side, re-measured per model.
+
+    Attributes:
+        samples: one whole-image sample per pair (every split).
+        measurer: the atlas's measurer (masks, pixel draws, normal equations: the sharp side, done once).
+        noise: the views' measured noise (:func:`dp5k_diagnose.noise.measure_noise`).
+        colour: whether the data has colour (R, G and B differ beyond noise).
+    """
+
+    samples: list[Sample]
+    measurer: AtlasMeasurer
+    noise: NoiseMeasure
+    colour: bool
+    cfg: DiagnoseConfig
+
+    @classmethod
+    def of(cls, samples: Sequence[Sample], base: BaseModel, cfg: DiagnoseConfig) -> "Measurement":
+        samples = list(samples)
+        measurer = AtlasMeasurer(pair_images(samples), cfg.n_boot, cfg.seed)
+        measurer.measure("measured", measured_views(samples))
+        noise = measure_noise(base, samples, cfg)
+        return cls(samples, measurer, noise, colour_contrast(samples) > GREY_MAX_COLOUR_CONTRAST, cfg)
+
+    @property
+    def atlas(self) -> Atlas:
+        return self.measurer.atlas
+
+    def simulator(self, render: Render, name: str = "model") -> Atlas:
+        """Measure ``render``'s atlas on the same pairs (with the views' noise), as view-set ``name``."""
+        noise = (self.noise.shot_var, self.noise.read_sigma) if self.noise.measured else None
+        self.measurer.measure(name, rendered_views(render, self.samples, noise, self.cfg.seed))
+        return self.atlas
+
+    def signatures(self, model: str = "model") -> dict[str, Signature]:
+        """Every effect's signature, measured minus ``model``'s atlas."""
+        p = Pairing(self.atlas, "measured", model)
+        out = [lr_gain_signature(self.atlas, p), field_signature(self.atlas, p), chromatic_signature(p, self.colour),
+               disparity_signature(p), focus_signature(p), profile_signature(p), front_back_signature(p),
+               misregistration_signature(p), noise_signature(self.noise, self.cfg)]
+        return {s.effect: s for s in out}
+
+    def of_model(self, model: BaseModel, name: str = "model") -> dict[str, Signature]:
+        """Measure ``model``'s atlas as view-set ``name`` (again, when it was) and read every signature against it."""
+        self.simulator(lambda s: model.render(s.batch, s.field), name)
+        return self.signatures(name)

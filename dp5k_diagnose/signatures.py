@@ -1,0 +1,482 @@
+r"""Signatures: one quantity per physical effect, read off two atlases measured the same way (the measured views and a
+simulator's renders of the same pairs), each with a bootstrap interval over pairs.
+
+Each effect changes its own summary of the kernels and, by construction, not the others' (docs/diagnose.md,
+"Signatures"):
+
+======================  =====================================================================================
+effect                  signature (measured minus simulator)
+======================  =====================================================================================
+lr_gain_imbalance       ln(L/R) of the kernels' sums (their DC gains) over the field: a plane a0 + ax x + ay y
+disparity_scale         the split's efficiency: the L-R centroid gap over the gap an ideal split of the same
+                        L + R kernel would give (``2 E|x - x_c|``), pooled over |CoC| >= 2 px
+misregistration         the L + R kernel's centroid (x, y) px near focus (|CoC| < 4 px), where no blur moves it
+focus_offset            the front/back odd part of the blur's size, its constant: a focus error adds the same
+                        CoC on both sides, so one side grows and the other shrinks by the same px
+chromatic_defocus       the same constant per colour channel, R and B against G
+front_back_asymmetry    the odd part's growth with |CoC| (a size ratio) and the profile's front/back difference
+psf_profile             the profile index ``E[r^2] / E[r]^2`` of the L + R kernel (flat disc 9/8, a bright rim
+                        lower, a bright centre higher), even over front and back
+field_varying_psf       per field zone, the kernels' normalised shape (size, efficiency, anisotropy, centroid
+                        per px of CoC) against the whole field's at the same CoC: each kernel's sum is
+                        normalised out, so a gain ramp cannot show here
+noise                   the views' white-noise variance over the nominal (:mod:`dp5k_diagnose.noise`)
+======================  =====================================================================================
+
+Every summary is a ratio of moments of a kernel, so a kernel's sum (a gain) cancels from all but the first.
+Moments are taken inside a disc of the bin's blur radius plus :data:`WINDOW_MARGIN_PX`.
+
+Units: sizes and centroids in output px, CoC as its signed diameter in output px, gains as natural logs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .atlas import COARSE, FINE, ZONES, Atlas, Key, zone_centre
+
+WINDOW_MARGIN_PX = 2.5
+"""Moments are taken within the bin's largest blur radius plus this (px): shifts and residual blur, not tails."""
+
+
+# ---------------------------------------------------------------------------------------------- kernel moments
+@dataclass
+class Moments:
+    """Summaries of kernels (..., 2, k, k) for (L, R), all arrays of the leading shape.
+
+    Attributes:
+        cx, cy: the L + R kernel's centroid (px; x right, y down): the mean of the two views' centroids.
+        gap: the R kernel's centroid x minus the L kernel's (px; > 0 behind focus for the ideal split).
+        gap_ideal: the gap an ideal split of the L + R kernel at its centroid would give, ``2 E|x - cx|`` (px).
+        size: the L + R kernel's mean radius ``E[r]`` about its centroid (px; a flat disc of diameter c: c / 3).
+        r2: its mean squared radius ``E[r^2]`` (px^2).
+        aniso: ``(E|x - cx| - E|y - cy|) / E[r]`` (0 for a round kernel).
+    """
+
+    cx: np.ndarray
+    cy: np.ndarray
+    gap: np.ndarray
+    gap_ideal: np.ndarray
+    size: np.ndarray
+    r2: np.ndarray
+    aniso: np.ndarray
+
+    @property
+    def efficiency(self) -> np.ndarray:
+        """|gap| / gap_ideal: 1 for a hard split, less with crosstalk."""
+        return np.abs(self.gap) / np.maximum(self.gap_ideal, 1e-9)
+
+    @property
+    def profile(self) -> np.ndarray:
+        """``E[r^2] / E[r]^2``: 9/8 for a flat disc, lower with a bright rim, higher with a bright centre."""
+        return self.r2 / np.maximum(self.size, 1e-9) ** 2
+
+
+MIN_VIEW_SHARE = 0.1
+"""A view whose windowed kernel holds less than this share of the two views' mean sum has no shape to measure
+(its moments are NaN): a split moved far off axis, a view nearly dark."""
+
+
+def moments(k: np.ndarray, radius_px: float) -> Moments:
+    """:class:`Moments` of kernels ``k`` (..., 2, K, K) (L, R; offset 0 at the centre) inside a disc of
+    ``radius_px`` centred on the kernels' centroid (found inside the disc about 0, then once more about it).
+
+    The L + R kernel is the mean of the two views' kernels each normalised to sum 1, so that no moment depends on
+    the views' gains (with a plain sum, a brighter left view would pull the centroid left)."""
+    h = k.shape[-1] // 2
+    yy, xx = np.mgrid[-h : h + 1, -h : h + 1].astype(np.float64)
+    cx = np.zeros(k.shape[:-3])
+    cy = np.zeros(k.shape[:-3])
+    for _ in range(2):
+        dx = xx - cx[..., None, None]
+        dy = yy - cy[..., None, None]
+        win = (dx**2 + dy**2) <= radius_px**2
+        kw = np.where(win[..., None, :, :], k, 0.0)
+        sv = kw.sum((-1, -2))  # (..., 2)
+        ok = sv > MIN_VIEW_SHARE * np.abs(sv).mean(-1, keepdims=True)
+        sv = np.where(ok, sv, np.nan)
+        mxv = (kw * xx).sum((-1, -2)) / sv
+        full = (kw / sv[..., None, None]).sum(-3) / 2
+        cx = np.nan_to_num((full * xx).sum((-1, -2)), nan=0.0)
+        cy = np.nan_to_num((full * yy).sum((-1, -2)), nan=0.0)
+    bad = ~ok.all(-1)
+    dx = xx - cx[..., None, None]
+    dy = yy - cy[..., None, None]
+    r = np.sqrt(dx**2 + dy**2)
+    size = (full * r).sum((-1, -2))
+    r2 = (full * r * r).sum((-1, -2))
+    ax = (full * np.abs(dx)).sum((-1, -2))
+    ay = (full * np.abs(dy)).sum((-1, -2))
+    nan = lambda a: np.where(bad, np.nan, a)  # noqa: E731
+    return Moments(nan(cx), nan(cy), mxv[..., 1] - mxv[..., 0], nan(2 * ax), nan(size), nan(r2),
+                   nan((ax - ay) / np.maximum(size, 1e-9)))
+
+
+def window_radius(key: Key) -> float:
+    """The moments' window radius (px) of a cell: its bin's largest blur radius plus :data:`WINDOW_MARGIN_PX`."""
+    lo, hi = (FINE if key[1] < 0 else COARSE).edges(key[0])
+    return max(abs(lo), abs(hi)) / 2 + WINDOW_MARGIN_PX
+
+
+def cell_moments(atlas: Atlas, key: Key, name: str, channel: int | None = None) -> tuple[Moments, Moments]:
+    """(point, bootstrap) :class:`Moments` of a cell's kernels, the channels averaged (or one ``channel``);
+    the bootstrap's leading axis is the resample."""
+    k = atlas.kernels(key, name)
+    kb = atlas.kernels(key, name, boot=True)
+    pick = (lambda a: a.mean(-3)) if channel is None else (lambda a: a[..., channel, :, :])
+    r = window_radius(key)
+    return moments(pick(k), r), moments(pick(kb), r)
+
+
+# ---------------------------------------------------------------------------------------------- signatures
+@dataclass
+class Value:
+    """One signature value: measured minus simulator, with its bootstrap (or a test of its own).
+
+    Attributes:
+        name: what it is (``a0``, ``efficiency``, ...).
+        unit: its unit.
+        value: the point difference.
+        boot: (B,) the difference under each resample (its spread gives the interval and the test).
+        min_effect: the smallest |value| that counts.
+        measured, model: the point values of each atlas (NaN where a value is a difference by nature).
+        p: the two-sided p-value of "no difference"; by default from the bootstrap's standard error (normal).
+    """
+
+    name: str
+    unit: str
+    value: float
+    boot: np.ndarray
+    min_effect: float
+    measured: float = float("nan")
+    model: float = float("nan")
+    p: float | None = None
+
+    @property
+    def se(self) -> float:
+        """The bootstrap's standard error, robustly (1.4826 x its median absolute deviation): a first-order
+        resample that draws one pair of a thin cell several times can throw a few values far out."""
+        return robust_se(self.boot)
+
+    @property
+    def p_value(self) -> float:
+        if self.p is not None:
+            return self.p
+        if not np.isfinite(self.value) or not np.isfinite(self.se) or self.se <= 0:
+            return 1.0
+        return float(math.erfc(abs(self.value) / self.se / math.sqrt(2)))
+
+    def interval(self, level: float = 0.95) -> tuple[float, float]:
+        """The ``level`` interval: value +- z se (normal, from the bootstrap's spread)."""
+        z = _z(level)
+        return (self.value - z * self.se, self.value + z * self.se)
+
+    def differs(self, alpha: float) -> bool:
+        """Significant at ``alpha`` and at least :attr:`min_effect`."""
+        return bool(self.p_value < alpha and abs(self.value) >= self.min_effect)
+
+    def to_json(self) -> dict:
+        lo, hi = self.interval()
+        return {"name": self.name, "unit": self.unit, "value": _f(self.value), "interval95": [_f(lo), _f(hi)],
+                "p_value": _f(self.p_value), "min_effect": self.min_effect, "measured": _f(self.measured),
+                "simulator": _f(self.model)}
+
+
+def robust_se(boot: np.ndarray, axis: int = 0) -> np.ndarray | float:
+    """1.4826 x the median absolute deviation of the finite values along ``axis`` (inf with fewer than 10)."""
+    b = np.where(np.isfinite(boot), boot, np.nan)
+    n = np.isfinite(b).sum(axis)
+    med = np.nanmedian(b, axis=axis, keepdims=True)
+    s = 1.4826 * np.nanmedian(np.abs(b - med), axis=axis)
+    s = np.where(n >= 10, s, np.inf)
+    return float(s) if np.ndim(s) == 0 else s
+
+
+def _z(level: float) -> float:
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(1 - (1 - level) / 2)
+
+
+def _f(x: float) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
+@dataclass
+class Signature:
+    """An effect's signature: its values, and why it could not be measured (then nothing is named from it)."""
+
+    effect: str
+    values: list[Value] = field(default_factory=list)
+    unmeasured: str = ""
+
+    def differs(self, alpha: float) -> bool:
+        """Any value differs at ``alpha`` / (its number of values) (Bonferroni) and beyond its minimum."""
+        if self.unmeasured or not self.values:
+            return False
+        return any(v.differs(alpha / len(self.values)) for v in self.values)
+
+    def strength(self) -> float:
+        """The largest |value| / min_effect of its values (how far beyond its bar it is)."""
+        return max((abs(v.value) / v.min_effect for v in self.values if np.isfinite(v.value)), default=0.0)
+
+    def to_json(self, alpha: float) -> dict:
+        return {"effect": self.effect, "differs": self.differs(alpha), "unmeasured": self.unmeasured or None,
+                "values": [v.to_json() for v in self.values]}
+
+
+def _wmean(x: np.ndarray, w: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Weighted mean over ``axis`` of the finite entries."""
+    w = np.broadcast_to(w, x.shape)
+    ok = np.isfinite(x) & (w > 0)
+    return np.where(ok, x * w, 0.0).sum(axis) / np.maximum(np.where(ok, w, 0.0).sum(axis), 1e-30)
+
+
+def _table(atlas: Atlas, keys: list[Key], name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """attr -> (point (n,), boot (B, n)) of every :class:`Moments` field and property over ``keys``."""
+    pts: dict[str, list] = {}
+    bts: dict[str, list] = {}
+    for key in keys:
+        p, b = cell_moments(atlas, key, name, channel)
+        for attr in ("cx", "cy", "gap", "gap_ideal", "size", "r2", "aniso", "efficiency", "profile"):
+            pts.setdefault(attr, []).append(float(getattr(p, attr)))
+            bts.setdefault(attr, []).append(getattr(b, attr))
+    return {a: (np.asarray(pts[a]), np.stack(bts[a], -1)) for a in pts}
+
+
+@dataclass
+class Pairing:
+    """The two view-sets a signature compares, and the moments of their whole-field bins (read once)."""
+
+    atlas: Atlas
+    measured: str = "measured"
+    model: str = "model"
+
+    def __post_init__(self) -> None:
+        self.keys = [(b, -1) for b in self.atlas.measured_bins(-1)]
+        self.c = np.array([FINE.centre(b) for b, _ in self.keys])
+        self.pix = np.array([float(self.atlas.cells[k].pixels.sum()) for k in self.keys])
+        self.cbar = np.array([self.atlas.cells[k].mean_coc_px for k in self.keys])
+        self._t: dict[tuple[str, int | None], dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+
+    def t(self, name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        if (name, channel) not in self._t:
+            self._t[(name, channel)] = _table(self.atlas, self.keys, name, channel)
+        return self._t[(name, channel)]
+
+    def diff(self, attr: str, channel: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(point (n,), boot (B, n)): measured minus simulator of a moment over the whole-field bins."""
+        (pm, bm), (ps, bs) = self.t(self.measured, channel)[attr], self.t(self.model, channel)[attr]
+        return pm - ps, bm - bs
+
+    def value(self, name: str, unit: str, attr: str, sel: np.ndarray, w: np.ndarray, min_effect: float,
+              channel: int | None = None) -> Value:
+        """The weighted mean of ``attr``'s difference over the bins ``sel``."""
+        d, db = self.diff(attr, channel)
+        (pm, _), (ps, _) = self.t(self.measured, channel)[attr], self.t(self.model, channel)[attr]
+        ww = np.where(sel, w, 0.0)
+        return Value(name, unit, float(_wmean(d, ww)), _wmean(db, ww[None]), min_effect,
+                     float(_wmean(pm, ww)), float(_wmean(ps, ww)))
+
+    def sided_fit(self, attr: str, lo: float, hi: float, channel: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fit the difference of ``attr`` against each bin's mean CoC c over the bins with ``lo <= |c| <= hi``:
+        ``d(c) = d0 + alpha sign(c) + g_even |c| + g_odd c`` (pixel-weighted). A focus error is ``alpha`` (the same
+        CoC added on both sides), a size that grows differently in front and behind is ``g_odd``; a residual blur
+        or a profile change moves ``d0`` and ``g_even``. Fitted against the bins' own mean CoC, so that a bin whose
+        pixels sit at another CoC in front than behind does not read as a difference. Returns ((d0, alpha,
+        g_even, g_odd), boot (B, 4)), or None with fewer than two bins on either side."""
+        d, db = self.diff(attr, channel)
+        c = self.cbar
+        sel = (np.abs(c) >= lo) & (np.abs(c) <= hi) & np.isfinite(d)
+        if (sel & (c > 0)).sum() < 2 or (sel & (c < 0)).sum() < 2:
+            return None
+        w = np.sqrt(self.pix[sel])
+        X = np.stack([np.ones(int(sel.sum())), np.sign(c[sel]), np.abs(c[sel]), c[sel]], 1) * w[:, None]
+        pinv = np.linalg.pinv(X)  # (4, n)
+        bt = np.where(np.isfinite(db[:, sel]), db[:, sel], d[sel][None])
+        return pinv @ (d[sel] * w), (bt * w[None]) @ pinv.T
+
+
+SIZE_PER_COC = 1.0 / 3.0
+"""The mean radius of a flat disc per px of its diameter: a CoC change dc moves the size by dc / 3."""
+
+
+def lr_gain_signature(atlas: Atlas, p: Pairing) -> Signature:
+    """ln(L/R) of the kernels' DC gains per field zone (each zone's bins pooled), measured minus simulator, fitted by
+    a plane over the zones' centres: a0 (at the centre), ax, ay (per unit field)."""
+    zones = sorted({z for (_, z) in atlas.cells if z >= 0})
+    if not zones:
+        return Signature("lr_gain_imbalance", unmeasured="no field zone holds scored pixels")
+    d_pt, d_bt, w = [], [], []
+    for z in zones:
+        keys = [k for k in atlas.cells if k[1] == z]
+        lr = {}
+        for name in (p.measured, p.model):
+            num = sum(atlas.cells[k].dc[name].sum(0).sum(-1) for k in keys)  # (2,)
+            nb = sum(np.tensordot(atlas.weights[:, atlas.cells[k].pairs], atlas.cells[k].dc[name].sum(-1), axes=(1, 0)) for k in keys)
+            lr[name] = (np.log(num[0] / num[1]), np.log(nb[:, 0] / nb[:, 1]))
+        d_pt.append(lr[p.measured][0] - lr[p.model][0])
+        d_bt.append(lr[p.measured][1] - lr[p.model][1])
+        w.append(sum(float(atlas.cells[k].pixels.sum()) for k in keys))
+    xy = np.array([zone_centre(z) for z in zones])
+    w = np.asarray(w)
+    cols = [np.ones(len(zones))] + ([xy[:, 0], xy[:, 1]] if len(zones) >= 3 else [])
+    X = np.stack(cols, 1) * np.sqrt(w)[:, None]
+    pinv = np.linalg.pinv(X)
+    coef = pinv @ (np.asarray(d_pt) * np.sqrt(w))
+    coef_b = (np.stack(d_bt, 1) * np.sqrt(w)[None]) @ pinv.T
+    names = ("lr_log_ratio_centre", "lr_log_ratio_per_x", "lr_log_ratio_per_y")
+    mins = (0.012, 0.02, 0.02)
+    return Signature("lr_gain_imbalance", [Value(names[j], "ln(L/R)" + ("" if j == 0 else " per unit field"), float(coef[j]),
+                                                 coef_b[:, j], mins[j]) for j in range(len(cols))])
+
+
+def disparity_signature(p: Pairing) -> Signature:
+    """The split's efficiency (:attr:`Moments.efficiency`) at |CoC| >= 2.2 px, weighted by pixels x CoC^2."""
+    sel = np.abs(p.c) >= 2.2
+    if not sel.any():
+        return Signature("disparity_scale", unmeasured="no bin of |CoC| >= 2.2 px is measured")
+    return Signature("disparity_scale", [p.value("split_efficiency", "1", "efficiency", sel, p.pix * p.c**2, 0.03)])
+
+
+def misregistration_signature(p: Pairing) -> Signature:
+    """The L + R kernel's centroid (px) near focus (|CoC| < 4 px), weighted by pixels."""
+    sel = np.abs(p.c) < 4.0
+    if not sel.any():
+        return Signature("misregistration", unmeasured="no bin of |CoC| < 4 px is measured")
+    return Signature("misregistration", [p.value("shift_x", "px", "cx", sel, p.pix, 0.08),
+                                         p.value("shift_y", "px", "cy", sel, p.pix, 0.08)])
+
+
+FOCUS_RANGE_PX = (1.0, 22.0)
+"""|CoC| range (px) of the bins whose front/back odd part measures a focus or colour error."""
+
+
+def focus_signature(p: Pairing) -> Signature:
+    """A focus error adds the same CoC beta on both sides of focus: the blur grows by beta/3 behind and shrinks by as
+    much in front (:data:`SIZE_PER_COC`). beta is the size fit's ``alpha`` (:meth:`Pairing.sided_fit`) times 3 (px of
+    CoC)."""
+    fit = p.sided_fit("size", *FOCUS_RANGE_PX)
+    if fit is None:
+        return Signature("focus_offset", unmeasured="too few bins measured on both sides of focus (|CoC| 1-22 px)")
+    (_, a, _, _), boot = fit
+    return Signature("focus_offset", [Value("coc_offset", "px of CoC", a / SIZE_PER_COC, boot[:, 1] / SIZE_PER_COC, 0.15)])
+
+
+def chromatic_signature(p: Pairing, colour: bool) -> Signature:
+    """The focus signature per colour channel, red and blue against green (px of CoC)."""
+    if not colour:
+        return Signature("chromatic_defocus", unmeasured="the data has no colour (R = G = B within noise)")
+    fits = [p.sided_fit("size", *FOCUS_RANGE_PX, channel=ch) for ch in range(3)]
+    if any(f is None for f in fits):
+        return Signature("chromatic_defocus", unmeasured="too few bins measured on both sides of focus (|CoC| 1-22 px)")
+    out = []
+    for ch, label in ((0, "red"), (2, "blue")):
+        v = (fits[ch][0][1] - fits[1][0][1]) / SIZE_PER_COC
+        vb = (fits[ch][1][:, 1] - fits[1][1][:, 1]) / SIZE_PER_COC
+        out.append(Value(f"coc_offset_{label}_vs_green", "px of CoC", float(v), vb, 0.12))
+    return Signature("chromatic_defocus", out)
+
+
+def front_back_signature(p: Pairing) -> Signature:
+    """Blur in front of focus against blur behind it at equal |CoC|: how much faster the size grows with |CoC| in
+    front (``-2 g_odd`` of the size fit, :meth:`Pairing.sided_fit`) and the profile index's front-minus-back
+    difference (``-2 g_odd`` of the profile fit over |CoC| >= 3 px, per px of |CoC| times the mean |CoC|)."""
+    size = p.sided_fit("size", 3.0, FOCUS_RANGE_PX[1])
+    prof = p.sided_fit("profile", 3.0, 60.0)
+    if size is None or prof is None:
+        return Signature("front_back_asymmetry", unmeasured="too few bins measured on both sides of focus (|CoC| >= 3 px)")
+    (_, _, _, g), gb = size
+    # the profile index is scale-free: its front/back difference is a constant, the sign(c) term
+    (_, pa, _, _), pb = prof
+    return Signature("front_back_asymmetry", [Value("size_growth_front_minus_back", "px of size per px of |CoC|", -2 * float(g), -2 * gb[:, 3], 0.012),
+                                              Value("profile_front_minus_back", "1", -2 * float(pa), -2 * pb[:, 1], 0.02)])
+
+
+def profile_signature(p: Pairing) -> Signature:
+    """The profile index (:attr:`Moments.profile`) at |CoC| >= 3 px, front and back pooled (pixels x CoC^2)."""
+    sel = np.abs(p.c) >= 3.0
+    if not sel.any():
+        return Signature("psf_profile", unmeasured="no bin of |CoC| >= 3 px is measured")
+    return Signature("psf_profile", [p.value("profile_index", "1", "profile", sel, p.pix * p.c**2, 0.012)])
+
+
+FVP_MIN_COC_PX = 3.0
+"""Zone kernels from this |CoC| (px) on show the shape over the field (smaller ones are pixel sampling)."""
+
+FVP_DESCRIPTORS: dict[str, tuple[str, float]] = {
+    "size": ("size over the zones' mean at the same CoC, minus 1", 0.03),
+    "efficiency": ("split efficiency minus the zones' mean", 0.04),
+    "aniso": ("anisotropy minus the zones' mean", 0.03),
+    "shift_x": ("centroid x, front/back odd part, per px of CoC, minus the zones' mean", 0.015),
+    "shift_y": ("centroid y, front/back odd part, per px of CoC, minus the zones' mean", 0.015),
+}
+"""Each field-zone descriptor of :func:`field_signature`: its meaning and its smallest rms over the zones that counts."""
+
+
+def _zone_descriptors(atlas: Atlas, name: str) -> dict[str, dict[tuple[int, int], tuple[float, np.ndarray, float]]]:
+    """descriptor -> (zone, coarse bin) -> (point, boot (B,), weight), relative to the zones' weighted mean per bin."""
+    zkeys = [k for k in atlas.cells if k[1] >= 0 and atlas.cells[k].measured and abs(COARSE.centre(k[0])) >= FVP_MIN_COC_PX]
+    mom = {k: cell_moments(atlas, k, name) for k in zkeys}
+    pix = {k: float(atlas.cells[k].pixels.sum()) for k in zkeys}
+    out: dict[str, dict[tuple[int, int], tuple[float, np.ndarray, float]]] = {d: {} for d in FVP_DESCRIPTORS}
+    for b in sorted({k[0] for k in zkeys}):
+        ks = [k for k in zkeys if k[0] == b]
+        if len(ks) < 2:
+            continue
+        c = COARSE.centre(b)
+        w = np.array([pix[k] for k in ks])
+
+        def rel(attr: str, ratio: bool = False) -> list[tuple[float, np.ndarray]]:
+            pt = np.array([float(getattr(mom[k][0], attr)) for k in ks])
+            bt = np.stack([getattr(mom[k][1], attr) for k in ks], -1)
+            ref, refb = _wmean(pt, w), _wmean(bt, w[None])
+            if ratio:
+                return [(pt[i] / ref - 1, bt[:, i] / refb - 1) for i in range(len(ks))]
+            return [(pt[i] - ref, bt[:, i] - refb) for i in range(len(ks))]
+
+        for d, attr, ratio in (("size", "size", True), ("efficiency", "efficiency", False), ("aniso", "aniso", False)):
+            for k, (v, vb) in zip(ks, rel(attr, ratio)):
+                out[d][(k[1], b)] = (v, vb, pix[k] * c * c)
+        if b > 0 and all((-b, k[1]) in mom for k in ks):  # centroid: odd part per px of CoC
+            for d, attr in (("shift_x", "cx"), ("shift_y", "cy")):
+                pt = np.array([(float(getattr(mom[k][0], attr)) - float(getattr(mom[(-b, k[1])][0], attr))) / (2 * c) for k in ks])
+                bt = np.stack([(getattr(mom[k][1], attr) - getattr(mom[(-b, k[1])][1], attr)) / (2 * c) for k in ks], -1)
+                ref, refb = _wmean(pt, w), _wmean(bt, w[None])
+                for i, k in enumerate(ks):
+                    out[d][(k[1], b)] = (pt[i] - ref, bt[:, i] - refb, pix[k] * c * c)
+    return out
+
+
+def field_signature(atlas: Atlas, p: Pairing) -> Signature:
+    """The kernels' normalised shape per field zone against the zones' mean at the same CoC (:data:`FVP_DESCRIPTORS`),
+    measured minus simulator, averaged over the bins in each zone; per descriptor the rms over zones and a chi-square
+    test of its zones (Z - 1 degrees of freedom, each zone's variance from the bootstrap)."""
+    from scipy.stats import chi2
+
+    dm, ds = _zone_descriptors(atlas, p.measured), _zone_descriptors(atlas, p.model)
+    values = []
+    for d, (what, min_rms) in FVP_DESCRIPTORS.items():
+        cells = sorted(set(dm[d]) & set(ds[d]))
+        zones = sorted({z for z, _ in cells})
+        if len(zones) < 3:
+            continue
+        pts, bts, ws = [], [], []
+        for z in zones:
+            cz = [c for c in cells if c[0] == z]
+            w = np.array([dm[d][c][2] for c in cz])
+            pts.append(_wmean(np.array([dm[d][c][0] - ds[d][c][0] for c in cz]), w))
+            bts.append(_wmean(np.stack([dm[d][c][1] - ds[d][c][1] for c in cz], -1), w[None]))
+            ws.append(w.sum())
+        pt, bt, wz = np.array(pts), np.stack(bts, -1), np.array(ws)
+        se = bt.std(0, ddof=1)
+        stat = float(np.sum((pt / np.maximum(se, 1e-12)) ** 2))
+        rms = float(np.sqrt(_wmean(pt**2, wz)))
+        rms_b = np.sqrt(_wmean(bt**2, wz[None]))
+        values.append(Value(f"{d}_rms_over_zones", what, rms, rms_b, min_rms, p=float(chi2.sf(stat, len(zones) - 1))))
+    if not values:
+        return Signature("field_varying_psf", unmeasured=f"fewer than 3 field zones hold kernels of |CoC| >= {FVP_MIN_COC_PX:g} px")
+    return Signature("field_varying_psf", values)
