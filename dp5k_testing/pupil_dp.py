@@ -50,7 +50,7 @@ aberrations is normalized by the half-diagonal (corners at radius 1).
 * ``field_varying_psf`` (a = 0.35 mm): astigmatism. At f/2 the sagittal and tangential foci split by a CoC of
   ``a r^2`` mm (r the field radius, corners 1), scaling as ``2 / N``; the medial focus stays flat. Discs become
   ellipses, long along the field's radius behind focus (short in front); at focus a corner point is a disc of
-  ``a r^2`` mm. Rays are only redistributed: each view's brightness is unchanged. Kernels at 5 x 4 field nodes
+  ``a r^2`` mm. Rays are only redistributed: each view's brightness is unchanged. Kernels at 5 x 5 field nodes
   (bilinear weights on the source).
 * ``chromatic_defocus`` (a = 0.24 mm): longitudinal colour of an achromat (secondary spectrum): every depth's
   image lies ``0.55 a`` (red) and ``a`` (blue) mm farther from the lens than the green one, so red and blue focus
@@ -127,8 +127,10 @@ FINE_STEP_PX = 0.1
 FINE_LIMIT_PX = 2.0
 COARSE_RATIO = 1.03
 """CoC node ratio beyond :data:`FINE_LIMIT_PX`."""
-FIELD_NODES = (3, 3)
-"""Field nodes (x, y) over the canvas when a PSF varies over the field (corners, edge middles, centre)."""
+FIELD_NODES = (5, 5)
+"""Field nodes (x, y) over the canvas when a PSF varies over the field: odd, so the centre is a node (no
+astigmatism there), and fine enough that bilinear weights follow the astigmatism's r^2 growth (a point at the
+frame's side edge gets its ellipse's second moments within 2 %)."""
 SA5_RATIO = -0.4
 """Fifth-order spherical aberration as a multiple of the third-order one (at the reference f-number)."""
 
@@ -187,6 +189,12 @@ class Lens:
         """Eq. 6 at the recorded focus: ``f^2 (d - F) / (N d (F - f))`` / pitch (> 0 behind focus)."""
         f, F = self.focal_length_mm, self.focus_distance_mm
         return f * f * (depth_mm - F) / (self.f_number * depth_mm * (F - f)) / self.pixel_pitch_mm
+
+    def inv_depth_for_coc(self, coc_px: float | np.ndarray) -> float | np.ndarray:
+        """Inverse depth (1/mm) whose Eq. 6 CoC at the recorded focus is ``coc_px`` (the inverse of :meth:`coc_px`)."""
+        A = self.aperture_mm
+        v = A * self.sensor_distance_mm() / (np.asarray(coc_px) * self.pixel_pitch_mm + A)
+        return 1.0 / self.focal_length_mm - 1.0 / v
 
     def channel_coc_px(self, inv_depth: np.ndarray, sensor_shift_mm: float = 0.0, image_shift_mm: float = 0.0) -> np.ndarray:
         """Signed CoC (px) of a colour channel whose images lie ``image_shift_mm`` farther from the lens, on a sensor
@@ -448,7 +456,9 @@ def composite(scene: LayerScene, lens: Lens, effects: Effects, views: Sequence[i
     Each covered pixel of a layer sends ``alpha * colour`` (and ``alpha``) through the kernels of the two CoC nodes
     around its CoC (linear weights) and, with a field-varying PSF, of the four field nodes around it (bilinear
     weights). Pixels are grouped by (CoC node, field cell) and each group is convolved on its box (split into blocks
-    of rows where its pixels are a thin diagonal band)."""
+    of rows where its pixels are a thin diagonal band). A view's kernels sum to :func:`view_share` exactly (the
+    pupil lattice is mirror-symmetric), so the alpha channel scattered with them, divided by it, is the share of the
+    view's ray cone the layer blocks."""
     hc, wc = scene.canvas_shape
     optics = optics_of(lens, effects, dual_pixel)
     groups = _channel_groups(effects)
@@ -463,16 +473,15 @@ def composite(scene: LayerScene, lens: Lens, effects: Effects, views: Sequence[i
         alpha = layer.alpha[rows, cols]
         colour = layer.colour[rows, cols]
         if grid is None:
-            cell, ncell = np.zeros(rows.size, np.int64), 1
+            cell, ncell, nx = np.zeros(rows.size, np.int64), 1, 1
         else:
             nx, ny = len(grid.xs) - 1, len(grid.ys) - 1
             ci = np.clip(np.searchsorted(grid.xs, cols, side="right") - 1, 0, nx - 1)
             cj = np.clip(np.searchsorted(grid.ys, rows, side="right") - 1, 0, ny - 1)
             cell, ncell = cj * nx + ci, nx * ny
-        P = {v: np.zeros((hc, wc, 3), np.float32) for v in views}
-        A = {v: np.zeros((hc, wc, 3), np.float32) for v in views}
         for chans, dv in groups:
-            ch = slice(chans[0], chans[-1] + 1)
+            n = len(chans)
+            acc = {v: np.zeros((hc, wc, n + 1), np.float32) for v in views}  # premultiplied colour, then alpha
             idx, t = node_weights(lens.channel_coc_px(layer.inv_depth[rows, cols], shift, dv))
             pix = np.tile(np.arange(rows.size), 2)
             wts = np.concatenate([(1.0 - t) * alpha, t * alpha]).astype(np.float32)
@@ -482,33 +491,61 @@ def composite(scene: LayerScene, lens: Lens, effects: Effects, views: Sequence[i
             order = np.argsort(key, kind="stable")
             key, wts, pix = key[order], wts[order], pix[order]
             starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+            col_all = colour[:, chans]
             for s0, s1 in zip(starts, np.r_[starts[1:], key.size]):
                 k, cl = divmod(int(key[s0]), ncell)
+                cnode = float(NODES[k])
+                if grid is None:
+                    corners = [(0.0, 0.0, None, None)]
+                else:
+                    i0, j0 = cl % nx, cl // nx
+                    corners = [(*grid.terms[(i, j)], i, j) for j in (j0, j0 + 1) for i in (i0, i0 + 1)]
+                kern = [{v: psf(cnode, v, optics, ac, as_) for v in views} for ac, as_, _, _ in corners]
+                R = max(K.shape[0] for ks in kern for K in ks.values()) // 2
                 for pp, ww in _pieces(rows, cols, pix[s0:s1], wts[s0:s1]):
-                    kern = {v: None for v in views}
                     r, c = rows[pp], cols[pp]
-                    if grid is None:
-                        parts = [((0.0, 0.0), ww)]
-                    else:
-                        i0, j0 = cl % nx, cl // nx
-                        parts = [(grid.terms[(i, j)], ww * grid.hx[i][c] * grid.hy[j][r])
-                                 for j in (j0, j0 + 1) for i in (i0, i0 + 1)]
-                    r0, c0 = int(r.min()), int(c.min())
-                    h, w = int(r.max()) + 1 - r0, int(c.max()) + 1 - c0
-                    col = colour[pp][:, ch]
-                    for (ac, as_), fw in parts:
-                        if not fw.any():
-                            continue
-                        kern = {v: psf(float(NODES[k]), v, optics, ac, as_) for v in views}
-                        R = max(K.shape[0] // 2 for K in kern.values())
-                        src = np.zeros((h + 2 * R, w + 2 * R, len(chans) + 1), np.float32)
-                        src[r - r0 + R, c - c0 + R, :-1] = col * fw[:, None]
-                        src[r - r0 + R, c - c0 + R, -1] = fw
+                    r0, c0 = int(r.min()) - R, int(c.min()) - R  # canvas corner of the padded box
+                    h, w = int(r.max()) + R + 1 - r0, int(c.max()) + R + 1 - c0
+                    src = np.zeros((h, w, n + 1), np.float32)
+                    src[r - r0, c - c0, :n] = col_all[pp] * ww[:, None]
+                    src[r - r0, c - c0, n] = ww
+                    y0, x0, y1, x1 = max(r0, 0), max(c0, 0), min(r0 + h, hc), min(c0 + w, wc)
+                    for (_, _, i, j), ks in zip(corners, kern):
+                        if i is None:
+                            part = src
+                        else:
+                            fy = _window(grid.hy[j], r0, h)
+                            fx = _window(grid.hx[i], c0, w)
+                            if not (fy.any() and fx.any()):
+                                continue
+                            part = src * (fy[:, None] * fx[None, :])[..., None]
                         for v in views:
-                            _scatter(src, kern[v], r0 - R, c0 - R, P[v], A[v], ch)
-        for v in views:
-            out[v] = P[v] + (1.0 - A[v]) * out[v]
+                            # filter2D correlates: the flipped kernel convolves (a point's light lands at +offset)
+                            conv = cv2.filter2D(part, cv2.CV_32F, _flipped(ks[v]), borderType=cv2.BORDER_CONSTANT)
+                            acc[v][y0:y1, x0:x1] += conv.reshape(h, w, n + 1)[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
+            for v in views:
+                a = acc[v][..., n:] * np.float32(1.0 / view_share(v))
+                out[v][..., chans[0] : chans[-1] + 1] = acc[v][..., :n] + (1.0 - a) * out[v][..., chans[0] : chans[-1] + 1]
     return out
+
+
+def view_share(view: int) -> float:
+    """The light a view's kernel collects: 1/2 for each photodiode, 1 for both."""
+    return 1.0 if view == FULL else 0.5
+
+
+def _window(hat: np.ndarray, start: int, length: int) -> np.ndarray:
+    """``hat[start : start + length]`` with zeros outside the canvas."""
+    out = np.zeros(length, np.float32)
+    a, b = max(start, 0), min(start + length, hat.size)
+    if b > a:
+        out[a - start : b - start] = hat[a:b]
+    return out
+
+
+def _flipped(K: np.ndarray) -> np.ndarray:
+    """The kernel rotated by 180 degrees (contiguous), for ``cv2.filter2D``."""
+    return np.ascontiguousarray(K[::-1, ::-1])
 
 
 def _hidden_masks(scene: LayerScene, lens: Lens, effects: Effects, optics: Optics) -> list[np.ndarray]:
@@ -550,23 +587,6 @@ def _pieces(rows: np.ndarray, cols: np.ndarray, pix: np.ndarray, wts: np.ndarray
     starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
     for s0, s1 in zip(starts, np.r_[starts[1:], block.size]):
         yield pix[s0:s1], wts[s0:s1]
-
-
-def _scatter(src: np.ndarray, K: np.ndarray, ty0: int, tx0: int, P: np.ndarray, A: np.ndarray, ch: slice) -> None:
-    """Convolve ``src`` ((h, w, n + 1): premultiplied colour of channels ``ch`` and alpha, zero-padded by at least
-    the kernel's radius) with ``K`` and add it with its corner at canvas (ty0, tx0) into ``P`` (colour) and ``A``
-    (alpha, normalised by the kernel's sum), clipped to the canvas."""
-    # filter2D correlates: the flipped kernel makes it a convolution (a point's light lands at +offset)
-    conv = cv2.filter2D(src, cv2.CV_32F, np.ascontiguousarray(K[::-1, ::-1]), borderType=cv2.BORDER_CONSTANT)
-    if conv.ndim == 2:
-        conv = conv[..., None]
-    h, w = src.shape[:2]
-    hc, wc = P.shape[:2]
-    cy0, cx0 = max(ty0, 0), max(tx0, 0)
-    cy1, cx1 = min(ty0 + h, hc), min(tx0 + w, wc)
-    part = conv[cy0 - ty0 : cy1 - ty0, cx0 - tx0 : cx1 - tx0]
-    P[cy0:cy1, cx0:cx1, ch] += part[..., :-1]
-    A[cy0:cy1, cx0:cx1, ch] += part[..., -1:] * np.float32(1.0 / float(K.sum()))
 
 
 def _crop(scene: LayerScene, img: np.ndarray, affine: np.ndarray | None = None) -> np.ndarray:

@@ -433,3 +433,15 @@ def plane_scene(size: tuple[int, int], pad: int, colour: np.ndarray, inv_depth: 
     inv = np.broadcast_to(np.asarray(inv_depth, np.float64), (hc, wc)).copy()
     layer = Layer(np.ascontiguousarray(colour, np.float32), np.ones((hc, wc), np.float32), inv, "plane")
     return LayerScene([layer], (W, H), pad, (W // 2, H // 2), float(1.0 / inv[pad + H // 2, pad + W // 2]))
+
+
+def points_scene(size: tuple[int, int], pad: int, points_px: list[tuple[int, int]], inv_depth: float,
+                 value: float = 1.0, background: float = 0.0) -> LayerScene:
+    """Point sources (one pixel of ``value`` each, at frame px ``points_px``) on a plane at ``inv_depth`` (1/mm) over
+    a uniform ``background``: each view then shows its kernel at every point."""
+    W, H = size
+    hc, wc = H + 2 * pad, W + 2 * pad
+    colour = np.full((hc, wc, 3), background, np.float32)
+    for x, y in points_px:
+        colour[y + pad, x + pad] = value
+    return plane_scene(size, pad, colour, inv_depth)
