@@ -45,8 +45,8 @@ aberrations is normalized by the half-diagonal (corners at radius 1).
 
 * ``lr_gain_imbalance`` (a = 0.06): the photodiodes' quantum efficiency drifts over the sensor (the microlens
   offset for the chief ray angle does not match): left gain ``1 + a s``, right ``1 - a s`` with
-  ``s = 0.2 + x_n (1 - 0.3 x_n^2) / 0.7 + 0.35 y_n^2`` (the L/R ratio about 1.02 at the centre, 1.17-1.2 at the right
-  edge, 0.89-0.95 at the left one, not linear). Brightness only: applied on the sensor, ``L + R`` unchanged.
+  ``s = 0.2 + x_n (1 - 0.3 x_n^2) / 0.7 + 0.35 y_n^2`` (the L/R ratio 1.024 at the centre, 1.16-1.21 along the
+  right edge, 0.91-0.95 along the left one, growing toward the top and bottom: not linear). Brightness only: applied on the sensor, ``L + R`` unchanged.
 * ``field_varying_psf`` (a = 0.35 mm): astigmatism. At f/2 the sagittal and tangential foci split by a CoC of
   ``a r^2`` mm (r the field radius, corners 1), scaling as ``2 / N``; the medial focus stays flat. Discs become
   ellipses, long along the field's radius behind focus (short in front); at focus a corner point is a disc of

@@ -7,10 +7,10 @@ affine in the image coordinates, so its CoC (affine in inverse depth) is too.
 
 The generator works in the CoC the widest aperture gives (output px at the recorded focus), then converts to depth:
 
-* a slanted **back plane** behind focus (3-24 px of CoC at 256 px width, never beyond infinity);
+* a slanted **back plane** behind focus (3-25 px of CoC at 256 px width, never beyond infinity);
 * 0-2 layers between it and focus; a **subject** in focus at the focus point (fronto-parallel or slanted through
   focus); an optional receding **floor** crossing focus (from well in front of focus at the bottom to behind it);
-  0-2 layers just in front of focus and 1-2 **near** layers (down to -22 px) towards the frame's edges.
+  1-2 layers just in front of focus and 1-2 **near** layers (down to -22 px) towards the frame's edges.
 * Each new layer lies in front of everything it covers (its CoC is at least 1 px below theirs over its footprint),
   so back-to-front order is depth order, and none covers the focus point.
 * Textures are the module's own: 1/f^beta noise mixed into colour by a random matrix, polygon mosaics, text-like
@@ -133,7 +133,7 @@ def _colourise(rng: np.random.Generator, fields: list[np.ndarray]) -> np.ndarray
 
 
 def _tex_pink(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
-    return _colourise(rng, pink_noise(rng, h, w, rng.uniform(0.8, 1.3), 3))
+    return _colourise(rng, pink_noise(rng, h, w, rng.uniform(0.6, 1.1), 3))
 
 
 def _tex_mosaic(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -207,7 +207,7 @@ def texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         img = floor
     else:
         base = cv2.resize(TEXTURES[kind](rng, h * s, w * s).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-        mix = rng.uniform(0.25, 0.45)
+        mix = rng.uniform(0.3, 0.5)
         img = (1.0 - mix) * base + mix * floor
     lo, hi = rng.uniform(0.04, 0.15), rng.uniform(0.7, 0.92)
     mn, mx = float(img.min()), float(img.max())
@@ -275,7 +275,7 @@ def _plane_coc(W: int, H: int, pad: int, c_centre: float, gx: float, gy: float, 
 
 
 def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal_length_mm: float, f_number: float,
-                pitch_mm: float, focus_range_mm: tuple[float, float] = (750.0, 1400.0)) -> LayerScene:
+                pitch_mm: float, focus_range_mm: tuple[float, float] = (700.0, 1200.0)) -> LayerScene:
     """A random scene (module docstring) for a lens of ``focal_length_mm`` at its widest ``f_number``.
 
     The CoC targets (px at that aperture, recorded focus) scale with ``W / 256``; the recorded focus ``F`` is drawn
@@ -286,7 +286,7 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
     hc, wc = H + 2 * pad, W + 2 * pad
     F = float(rng.uniform(*focus_range_mm))
     K = coc_scale_px(focal_length_mm, f_number, F, pitch_mm)
-    c_back_max = min(24.0 * s, 0.93 * K)
+    c_back_max = min(25.0 * s, 0.93 * K)
     c_near_min = -22.0 * s
     margin = 1.0 * s
 
@@ -322,7 +322,7 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
         return True
 
     # back plane: behind focus, slanted
-    cb = rng.uniform(0.45, 0.8) * c_back_max
+    cb = rng.uniform(0.5, 0.88) * c_back_max
     th = rng.uniform(0, 2 * np.pi) if rng.uniform() < 0.4 else rng.choice([-1, 1]) * np.pi / 2 + rng.uniform(-0.4, 0.4)
     span = rng.uniform(0.25, 0.7) * c_back_max
     g = span / math.hypot(W, H)
@@ -393,10 +393,10 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
             add(_plane_coc(W, H, pad, c_top, rng.uniform(-0.02, 0.02) * s, gy, (W / 2, top)), alpha, "floor",
                 c_near_min, c_back_max, clear)
 
-    # 0-2 layers just in front of focus
-    for _ in range(int(rng.integers(0, 3))):
+    # 1-2 layers just in front of focus
+    for _ in range(int(rng.integers(1, 3))):
         for _try in range(4):
-            alpha, at = draw_shape(((0.05, 0.95), (0.05, 0.95)), (0.12, 0.3))
+            alpha, at = draw_shape(((0.05, 0.95), (0.05, 0.95)), (0.15, 0.32))
             c0 = -rng.uniform(2.0, 9.0) * s
             gx, gy = rng.uniform(-0.05, 0.05, 2) * s
             if add(_plane_coc(W, H, pad, c0, gx, gy, at), alpha, "mid-front", c_near_min, 0.0, clear):
