@@ -8,7 +8,8 @@ tifffile, json). It is held out: diagnose is never tuned on it.
 **Pupil function.** Each view's PSF at a signed CoC ``c`` (output px, Eq. 6 divided by the pitch; > 0 behind
 focus) comes from a sampled pupil. A ray through the normalized pupil point ``u = (u_x, u_y)`` (``|u| <= 1``,
 x right and y down like the image) carries the weight ``T(u) R_view(u)`` and lands at the gradient of the
-wavefront ``W(u)`` (px x pupil radius), relative to the point's chief ray (docs/conventions.md)::
+wavefront ``W(u)`` (px: its gradient over the normalized pupil is the landing offset in px) from the point's chief
+ray (docs/conventions.md)::
 
     W(u) = c/4 |u|^2                                            defocus: lands at c u / 2
          + s3 (|u|^4/4 - 3/10 |u|^2) + s5 (|u|^6/6 - 3/14 |u|^2)   spherical aberration (front_back_asymmetry)
@@ -18,11 +19,12 @@ wavefront ``W(u)`` (px x pupil radius), relative to the point's chief ray (docs/
   acceptance (``psf_profile``). ``R_L(u)`` is the left photodiode's response: ideally the hard step ``u_x < 0``
   (the microlens images the pupil onto the photodiode pair), ``R_R(u) = R_L(-u)`` and ``R_L + R_R = 1``.
 * The pupil is sampled on a square lattice of ``n x n`` cells, ``n`` even (so ``u_x = 0`` is a cell boundary: the
-  split is exact) and chosen so that neighbouring rays land at most 1/8 px apart; cells cut by the rim are split
+  split is exact) and chosen so that neighbouring rays land at most 1/6 px apart; cells cut by the rim are split
   4 x 4 and weighted by their area inside the disc. Each ray's weight is spread over its cell's image (a square
   of the cell's size mapped by the defocus) and integrated over pixel areas exactly (box): the **kernel is the
-  pixel-area integral of the geometric PSF**, normalised so that the full pupil (``R_L + R_R``) sums to 1: the
-  camera's exposure is set through the lens, so each ideal view sums to 1/2.
+  pixel-area integral of the geometric PSF** of a point at the source pixel's centre (so, as in the area-coverage
+  kernels of Eq. 2, a disc under 1 px across stays in its pixel), normalised so that the full pupil (``R_L + R_R``)
+  sums to 1: the camera's exposure is set through the lens, so each ideal view sums to 1/2.
 * **Clean data is Eq. 2**: with nothing planted each view is the radiance convolved with the flat half disc of
   diameter ``|c|`` split at its centre line (for c > 0 the left view gets the left half), ``L + R`` the full disc,
   each summing to 1/2, up to the pupil sampling (about 1e-3 of the kernel's peak). No diffraction is modelled.
@@ -46,29 +48,34 @@ aberrations is normalized by the half-diagonal (corners at radius 1).
 * ``lr_gain_imbalance`` (a = 0.06): the photodiodes' quantum efficiency drifts over the sensor (the microlens
   offset for the chief ray angle does not match): left gain ``1 + a s``, right ``1 - a s`` with
   ``s = 0.2 + x_n (1 - 0.3 x_n^2) / 0.7 + 0.35 y_n^2`` (the L/R ratio 1.024 at the centre, 1.16-1.21 along the
-  right edge, 0.91-0.95 along the left one, growing toward the top and bottom: not linear). Brightness only: applied on the sensor, ``L + R`` unchanged.
+  right edge, 0.91-0.95 along the left one, growing toward the top and bottom: not linear). Brightness only,
+  applied on the sensor; the views' sum is unchanged where they agree (in focus).
 * ``field_varying_psf`` (a = 0.35 mm): astigmatism. At f/2 the sagittal and tangential foci split by a CoC of
   ``a r^2`` mm (r the field radius, corners 1), scaling as ``2 / N``; the medial focus stays flat. Discs become
   ellipses, long along the field's radius behind focus (short in front); at focus a corner point is a disc of
   ``a r^2`` mm. Rays are only redistributed: each view's brightness is unchanged. Kernels at 5 x 5 field nodes
   (bilinear weights on the source).
-* ``chromatic_defocus`` (a = 0.24 mm): longitudinal colour of an achromat (secondary spectrum): every depth's
+* ``chromatic_defocus`` (a = 0.45 mm): longitudinal colour of an achromat (secondary spectrum): every depth's
   image lies ``0.55 a`` (red) and ``a`` (blue) mm farther from the lens than the green one, so red and blue focus
-  at other distances than green, on the same side (``c = A (v_sensor - v_channel) / v_channel``, ``A = f / N``).
+  at other distances than green, on the same side (``c = A (v_sensor - v_channel) / v_channel``, ``A = f / N``):
+  about -0.8 px (red) and -1.5 px (blue) of CoC at f/2, half that at f/4; green is the lens of Eq. 6.
 * ``disparity_scale`` (a = 0.16): a soft split. The photodiodes' angular response is a raised-cosine step over ray
   angles ``tan(theta_x)`` in [-a, a] (the microlens' blur of the pupil image): in pupil coordinates a ramp of half
   width ``2 N a``, ``R_L(u) = (1 - sin(pi/2 clip(u_x / (2 N a), -1, 1))) / 2``. ``L + R`` is unchanged; the DP
-  disparity falls to about 0.89 at f/2 and 0.65 at f/4 (its share is larger at small apertures).
-* ``focus_offset`` (a = 0.22 mm): the sensor sits ``a`` mm farther from the lens than the image of the recorded
-  focus distance (a back-focus error): every CoC grows by about ``A a / v`` (0.75 px at f/2, 0.37 at f/4 at the
+  disparity falls to about 0.90 x at f/2 and 0.66 x at f/4 (the ramp covers more of a smaller pupil).
+* ``focus_offset`` (a = 0.3 mm): the sensor sits ``a`` mm farther from the lens than the image of the recorded
+  focus distance (a back-focus error): every CoC grows by about ``A a / v`` (1.0 px at f/2, 0.5 px at f/4 at the
   defaults), so the lens really focuses nearer than params.json says. ``sharp`` (same lens) has it too.
 * ``psf_profile`` (a = 1.1): the pixel's angular acceptance falls off with the ray's angle: ``T(u) = exp(-a
   (2 |u| / N)^2)`` (``tan(theta) = |u| / 2N``): at f/2 the disc's rim gets 0.33 of its centre's light, at f/4
   0.76 (centre-heavy, soft-edged discs at both sides of focus); exposure-normalised (kernel sums unchanged).
-* ``front_back_asymmetry`` (a = 0.16 mm): under-corrected spherical aberration. ``s3 = a (2/N)^3`` mm,
-  ``s5 = -0.4 a (2/N)^5`` mm (zonal balance); each term's defocus balance (3/5, 3/7) keeps zero DP disparity
-  at the recorded focus, where the camera's phase-detect AF put it. Behind focus the rim's rays spread outwards:
-  centre-heavy discs; in front they crowd: bright-rimmed, smaller discs.
+* ``front_back_asymmetry`` (a = 0.4 mm): under-corrected spherical aberration. ``s3 = a (2/N)^3`` mm,
+  ``s5 = -0.25 a (2/N)^5`` mm (a zonal residue); each term's defocus balance (3/5, 3/7) keeps the two views'
+  mean ray landing equal at the recorded focus, where the camera's phase-detect AF put it (binning the
+  sub-pixel focused spot into pixels leaves 0.09 px of L/R centroid separation there at f/2, none at f/4). Behind focus the rim's rays spread outwards:
+  centre-heavy discs; in front they crowd: bright-rimmed, smaller discs (at f/2 and 10 px the centre/rim ratio of
+  the disc is about 2.3 behind and 0.46 in front). The L/R centroid separation is unchanged; at focus the f/2
+  spot spreads by about 0.2 px rms.
 * ``misregistration`` (a = 1.0): both views against ``sharp`` by a similarity about the frame centre: shifted by
   ``(0.55 a, -0.35 a) W / 256`` px, rotated by ``0.05 a`` degrees, scaled by ``1 + 0.0012 a`` (Lanczos resampling
   of the noise-free views).
@@ -106,11 +113,11 @@ from .pupil_scene import REFERENCE_WIDTH_PX, LayerScene, layer_scene
 EFFECT_DEFAULTS: dict[str, float] = {
     "lr_gain_imbalance": 0.06,  # L gain 1 + a s(x, y), R 1 - a s, s = 0.2 + x_n (1 - 0.3 x_n^2) / 0.7 + 0.35 y_n^2
     "field_varying_psf": 0.35,  # astigmatism: sagittal/tangential CoC split a r^2 mm at f/2 (x 2/N), r = 1 at corners
-    "chromatic_defocus": 0.24,  # image distance of red +0.55 a mm, of blue +a mm behind green's
+    "chromatic_defocus": 0.45,  # image distance of red +0.55 a mm, of blue +a mm behind green's
     "disparity_scale": 0.16,  # photodiode response: raised-cosine step over tan(angle) in [-a, a]
-    "focus_offset": 0.22,  # sensor a mm behind the image of the recorded focus distance
+    "focus_offset": 0.3,  # sensor a mm behind the image of the recorded focus distance
     "psf_profile": 1.1,  # angular acceptance T = exp(-a (2 rho / N)^2)
-    "front_back_asymmetry": 0.16,  # spherical aberration s3 = a (2/N)^3 mm, s5 = -0.4 a (2/N)^5 mm (ray aberration)
+    "front_back_asymmetry": 0.4,  # spherical aberration s3 = a (2/N)^3 mm, s5 = -0.25 a (2/N)^5 mm (ray aberration)
     "misregistration": 1.0,  # shift (0.55, -0.35) a W/256 px, rotation 0.05 a deg, scale 1 + 0.0012 a
     "noise": 1.2,  # shot variance x (1 + a), read sigma x (1 + a)
 }
@@ -120,7 +127,7 @@ NOMINAL_READ_SIGMA = 1.5e-3
 """Nominal read-noise standard deviation (linear units)."""
 REFERENCE_F_NUMBER = 2.0
 """Aberration magnitudes are stated at this f-number (astigmatism scales as 1/N, spherical as 1/N^3 and 1/N^5)."""
-RAYS_PER_PX = 8
+RAYS_PER_PX = 6
 """Neighbouring rays land at most 1/RAYS_PER_PX px apart."""
 FINE_STEP_PX = 0.1
 """CoC node spacing up to :data:`FINE_LIMIT_PX`."""
@@ -131,7 +138,7 @@ FIELD_NODES = (5, 5)
 """Field nodes (x, y) over the canvas when a PSF varies over the field: odd, so the centre is a node (no
 astigmatism there), and fine enough that bilinear weights follow the astigmatism's r^2 growth (a point at the
 frame's side edge gets its ellipse's second moments within 2 %)."""
-SA5_RATIO = -0.4
+SA5_RATIO = -0.25
 """Fifth-order spherical aberration as a multiple of the third-order one (at the reference f-number)."""
 
 LEFT, RIGHT, FULL = 1, -1, 0
@@ -191,12 +198,13 @@ class Lens:
         return f * f * (depth_mm - F) / (self.f_number * depth_mm * (F - f)) / self.pixel_pitch_mm
 
     def inv_depth_for_coc(self, coc_px: float | np.ndarray) -> float | np.ndarray:
-        """Inverse depth (1/mm) whose Eq. 6 CoC at the recorded focus is ``coc_px`` (the inverse of :meth:`coc_px`)."""
+        """Inverse depth (1/mm) whose Eq. 6 CoC at the recorded focus is ``coc_px`` (inverts :meth:`coc_px`)."""
         A = self.aperture_mm
         v = A * self.sensor_distance_mm() / (np.asarray(coc_px) * self.pixel_pitch_mm + A)
         return 1.0 / self.focal_length_mm - 1.0 / v
 
-    def channel_coc_px(self, inv_depth: np.ndarray, sensor_shift_mm: float = 0.0, image_shift_mm: float = 0.0) -> np.ndarray:
+    def channel_coc_px(self, inv_depth: np.ndarray, sensor_shift_mm: float = 0.0, image_shift_mm: float = 0.0
+                       ) -> np.ndarray:
         """Signed CoC (px) of a colour channel whose images lie ``image_shift_mm`` farther from the lens, on a sensor
         ``sensor_shift_mm`` behind the image of the recorded focus: ``A (v_s - v_c) / v_c``. Both 0: Eq. 6."""
         vc = self.image_distance_mm(inv_depth) + image_shift_mm
@@ -251,10 +259,12 @@ def pupil_lattice(n: int, rim_split: int = 4, rim_samples: int = 8) -> tuple[np.
     rim = (near < 1.0) & ~full
     hs = h / rim_split
     off = -h / 2 + hs * (np.arange(rim_split) + 0.5)
-    sx = (ux[rim][:, None, None] + off[None, None, :] + 0 * off[None, :, None]).ravel()
-    sy = (uy[rim][:, None, None] + off[None, :, None] + 0 * off[None, None, :]).ravel()
+    ox, oy = np.meshgrid(off, off)
+    sx = (ux[rim][:, None] + ox.ravel()[None, :]).ravel()
+    sy = (uy[rim][:, None] + oy.ravel()[None, :]).ravel()
     o2 = -hs / 2 + hs / rim_samples * (np.arange(rim_samples) + 0.5)
-    cov = (((sx[:, None, None] + o2[None, None, :]) ** 2 + (sy[:, None, None] + o2[None, :, None]) ** 2) <= 1.0).mean((1, 2))
+    qx, qy = sx[:, None, None] + o2[None, None, :], sy[:, None, None] + o2[None, :, None]
+    cov = (qx * qx + qy * qy <= 1.0).mean((1, 2))
     keep = cov > 0
     return (np.concatenate([ux[full], sx[keep]]), np.concatenate([uy[full], sy[keep]]),
             np.concatenate([np.full(int(full.sum()), h * h), cov[keep] * hs * hs]),
@@ -317,7 +327,8 @@ def psf(c: float, view: int, optics: Optics, ac: float = 0.0, as_: float = 0.0) 
     iy, fy = _box_split(ey, foot, r)
     base = iy * size + ix
     idx = np.concatenate([base, base + 1, base + size, base + size + 1])
-    w = np.concatenate([mass * fx * fy, mass * (1.0 - fx) * fy, mass * fx * (1.0 - fy), mass * (1.0 - fx) * (1.0 - fy)])
+    gx, gy = 1.0 - fx, 1.0 - fy
+    w = np.concatenate([mass * fx * fy, mass * gx * fy, mass * fx * gy, mass * gx * gy])
     keep = w > 0
     k = np.bincount(idx[keep], weights=w[keep], minlength=size * size)[: size * size].reshape(size, size)
     nz = np.nonzero(k.sum(0) + k.sum(1))[0]  # crop to the support, keeping the centre
@@ -358,13 +369,6 @@ class FieldGrid:
     hy: list[np.ndarray]
     terms: dict[tuple[int, int], tuple[float, float]]
 
-    def nodes_over(self, r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int]]:
-        """Nodes whose weight can be non-zero in canvas rows [r0, r1) and columns [c0, c1)."""
-        sx, sy = self.xs[1] - self.xs[0], self.ys[1] - self.ys[0]
-        ii = [i for i, x in enumerate(self.xs) if x - sx < c1 - 1 + 1e-9 and x + sx > c0 - 1e-9]
-        jj = [j for j, y in enumerate(self.ys) if y - sy < r1 - 1 + 1e-9 and y + sy > r0 - 1e-9]
-        return [(i, j) for j in jj for i in ii]
-
 
 def field_grid(scene: LayerScene, optics: Optics) -> FieldGrid | None:
     """None without astigmatism; else :data:`FIELD_NODES` nodes spanning the canvas with their astigmatic terms
@@ -389,7 +393,8 @@ def field_grid(scene: LayerScene, optics: Optics) -> FieldGrid | None:
     for j, y in enumerate(ys):
         for i, x in enumerate(xs):
             xn, yn = (x - p - cx) / diag, (y - p - cy) / diag
-            terms[(i, j)] = (round(optics.astig_px * (xn * xn - yn * yn), 6), round(optics.astig_px * 2 * xn * yn, 6))
+            A = optics.astig_px
+            terms[(i, j)] = (round(A * (xn * xn - yn * yn), 6), round(A * 2 * xn * yn, 6))
     return FieldGrid(xs, ys, hats(xs, wc), hats(ys, hc), terms)
 
 
@@ -432,14 +437,6 @@ def _channel_groups(effects: Effects) -> list[tuple[list[int], float]]:
     if not a:
         return [([0, 1, 2], 0.0)]
     return [([0], 0.55 * a), ([1], 0.0), ([2], a)]
-
-
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    rows = np.flatnonzero(mask.any(1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask.any(0))
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 ROW_BLOCK = 32
@@ -525,7 +522,8 @@ def composite(scene: LayerScene, lens: Lens, effects: Effects, views: Sequence[i
                             acc[v][y0:y1, x0:x1] += conv.reshape(h, w, n + 1)[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
             for v in views:
                 a = acc[v][..., n:] * np.float32(1.0 / view_share(v))
-                out[v][..., chans[0] : chans[-1] + 1] = acc[v][..., :n] + (1.0 - a) * out[v][..., chans[0] : chans[-1] + 1]
+                ch = slice(chans[0], chans[-1] + 1)
+                out[v][..., ch] = acc[v][..., :n] + (1.0 - a) * out[v][..., ch]
     return out
 
 
@@ -555,9 +553,10 @@ def _hidden_masks(scene: LayerScene, lens: Lens, effects: Effects, optics: Optic
     reach = []
     for layer in scene.layers:
         c = lens.channel_coc_px(layer.inv_depth[layer.alpha > 0], effects.get("focus_offset"), 0.0)
-        grow = abs(lens.aperture_mm * effects.get("chromatic_defocus") / lens.sensor_distance_mm() / lens.pixel_pitch_mm)
-        reach.append(0.5 * (float(np.abs(c).max(initial=0.0)) + grow) + 0.6 * (abs(optics.sa3_px) + abs(optics.sa5_px))
-                     + 0.5 * optics.astig_px * 2.0 + 2.0)
+        grow = abs(lens.aperture_mm * effects.get("chromatic_defocus") / lens.sensor_distance_mm())
+        grow /= lens.pixel_pitch_mm
+        aberration = 0.6 * (abs(optics.sa3_px) + abs(optics.sa5_px)) + optics.astig_px  # astigmatism: r^2 / 2 < 1
+        reach.append(0.5 * (float(np.abs(c).max(initial=0.0)) + grow) + aberration + 2.0)
     masks = []
     for i, layer in enumerate(scene.layers):
         cut = np.zeros(scene.canvas_shape, bool)
@@ -646,14 +645,16 @@ def add_sensor_noise(rng: np.random.Generator, img: np.ndarray, shot_var: float,
 def canvas_pad(size: tuple[int, int]) -> int:
     """Canvas margin (px) of the scenes: covers the widest blur radius the scenes reach (25 px of CoC at 256 px),
     with the effects up to about 3 x their defaults."""
-    return int(math.ceil(0.11 * size[0])) + 6
+    return int(math.ceil(0.12 * size[0])) + 6
 
 
 def _required_pad(lens_fmin: Lens, effects: Effects, size: tuple[int, int], c_max_px: float) -> float:
+    """The canvas margin (px) ``effects`` need at the widest aperture: the largest blur radius of the scenes' CoCs up
+    to ``c_max_px`` grown by the focus error and colour, the aberrations' extra reach, the misregistration."""
     o = optics_of(lens_fmin, effects)
-    grow = abs(lens_fmin.aperture_mm * (effects.get("focus_offset") + effects.get("chromatic_defocus"))
-               / lens_fmin.sensor_distance_mm() / lens_fmin.pixel_pitch_mm)
-    reach = 0.5 * (c_max_px + grow) + abs(o.sa3_px) + abs(o.sa5_px) + 0.5 * o.astig_px * 1.6
+    shifts_mm = abs(effects.get("focus_offset")) + abs(effects.get("chromatic_defocus"))  # of the image (CoC growth)
+    grow = lens_fmin.aperture_mm * shifts_mm / lens_fmin.sensor_distance_mm() / lens_fmin.pixel_pitch_mm
+    reach = 0.5 * (c_max_px + grow) + 0.6 * (abs(o.sa3_px) + abs(o.sa5_px)) + 0.5 * o.astig_px * 1.6
     M = misregistration_matrix(effects, size)
     mis = 0.0 if M is None else float(np.abs(M[:, 2]).max() + 0.01 * size[0])
     return reach + mis + 2

@@ -145,7 +145,8 @@ def _tex_mosaic(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         r = rng.uniform(0.02, 0.12) * scale
         k = int(rng.integers(3, 7))
         ang = np.sort(rng.uniform(0, 2 * np.pi, k))
-        pts = np.stack([cx + r * np.cos(ang) * rng.uniform(0.5, 1.0, k), cy + r * np.sin(ang) * rng.uniform(0.5, 1.0, k)], -1)
+        rr = r * rng.uniform(0.5, 1.0, k)
+        pts = np.stack([cx + rr * np.cos(ang), cy + rr * np.sin(ang)], -1)
         cv2.fillPoly(img, [np.round(pts * 16).astype(np.int32)], tuple(float(v) for v in rng.uniform(0.05, 0.95, 3)),
                      lineType=cv2.LINE_AA, shift=4)
     return img
@@ -189,7 +190,8 @@ def _tex_edges(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     img[:] = rng.uniform(0.2, 0.7, 3)
     for _ in range(int(rng.integers(6, 14))):
         th = rng.uniform(0, np.pi)
-        d = (xx - np.float32(rng.uniform(0, w))) * np.float32(math.cos(th)) + (yy - np.float32(rng.uniform(0, h))) * np.float32(math.sin(th))
+        x0, y0 = np.float32(rng.uniform(0, w)), np.float32(rng.uniform(0, h))
+        d = (xx - x0) * np.float32(math.cos(th)) + (yy - y0) * np.float32(math.sin(th))
         img += np.clip(d + 0.5, 0, 1)[..., None] * rng.uniform(-0.25, 0.25, 3).astype(np.float32)
     return img
 
@@ -243,8 +245,9 @@ def shape_alpha(rng: np.random.Generator, hc: int, wc: int, centre: tuple[float,
         yy, xx = np.mgrid[0:hc, 0:wc].astype(np.float64)
         d = ((xx - centre[0]) / radius[0]) ** 2 + ((yy - centre[1]) / radius[1]) ** 2
         field_ = n - 0.45 * d
-        b = cv2.resize((field_ > np.percentile(field_, 100 * (1 - min(0.6, math.pi * radius[0] * radius[1] / (hc * wc)))))
-                       .astype(np.float32), (wc * s, hc * s), interpolation=cv2.INTER_LINEAR)
+        share = min(0.6, math.pi * radius[0] * radius[1] / (hc * wc))  # of the canvas the blob covers
+        inside = (field_ > np.percentile(field_, 100 * (1 - share))).astype(np.float32)
+        b = cv2.resize(inside, (wc * s, hc * s), interpolation=cv2.INTER_LINEAR)
         m = (b > 0.5).astype(np.uint8) * 255
     else:  # branch: a thick curved stroke with a side shoot
         t = np.linspace(0, 1, 40)
@@ -264,7 +267,7 @@ def shape_alpha(rng: np.random.Generator, hc: int, wc: int, centre: tuple[float,
 
 # ------------------------------------------------------------------------------------------------ the generator
 def coc_scale_px(focal_length_mm: float, f_number: float, focus_mm: float, pitch_mm: float) -> float:
-    """``K``: the CoC (output px, Eq. 6) of a point at infinity, so that ``c = K (1 - F / d)``, ``1/d = (1 - c/K) / F``."""
+    """``K``: the CoC (output px, Eq. 6) of a point at infinity: ``c = K (1 - F / d)``, ``1/d = (1 - c/K) / F``."""
     return focal_length_mm**2 / (f_number * (focus_mm - focal_length_mm) * pitch_mm)
 
 
@@ -296,7 +299,8 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
     layers: list[Layer] = []
     cvis = np.full((hc, wc), np.inf)  # CoC of the visible surface (what a new layer must lie in front of)
 
-    def add(c: np.ndarray, alpha: np.ndarray, name: str, lo: float, hi: float, keep_clear: tuple[float, float, float] | None) -> bool:
+    def add(c: np.ndarray, alpha: np.ndarray, name: str, lo: float, hi: float,
+            keep_clear: tuple[float, float, float] | None) -> bool:
         """Put a layer in front of what it covers, shifting its CoC nearer if needed; False if it cannot fit."""
         foot = alpha > 0.01
         if foot.sum() < 30:
@@ -329,7 +333,8 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
     cback = _plane_coc(W, H, pad, cb, g * math.cos(th), g * math.sin(th), (W / 2, H / 2))
     lo_b, hi_b = 3.0 * s, c_back_max
     cmin, cmax = cback.min(), cback.max()
-    cback = lo_b + (cback - cmin) * min(1.0, (hi_b - lo_b) / max(cmax - cmin, 1e-9)) if cmin < lo_b or cmax > hi_b else cback
+    if cmin < lo_b or cmax > hi_b:  # squeeze the plane into [lo_b, hi_b]
+        cback = lo_b + (cback - cmin) * min(1.0, (hi_b - lo_b) / max(cmax - cmin, 1e-9))
     cback = np.minimum(cback, hi_b)
     layers.append(Layer(texture(rng, hc, wc), np.ones((hc, wc), np.float32), inv_depth(cback), "back"))
     cvis[:] = cback
@@ -354,7 +359,8 @@ def layer_scene(rng: np.random.Generator, size: tuple[int, int], pad: int, focal
     # the subject, in focus at the focus point
     subject_ok = False
     for _try in range(8):
-        alpha, at = draw_shape(((0.3, 0.7), (0.3, 0.7)), (0.22, 0.38), str(rng.choice(["polygon", "ellipse", "box", "blob"])))
+        kind = str(rng.choice(["polygon", "ellipse", "box", "blob"]))
+        alpha, at = draw_shape(((0.3, 0.7), (0.3, 0.7)), (0.22, 0.38), kind)
         fx, fy = int(round(at[0])), int(round(at[1]))
         core = cv2.erode((alpha >= 0.999).astype(np.uint8), np.ones((13, 13), np.uint8))
         if not core[fy + pad, fx + pad]:
