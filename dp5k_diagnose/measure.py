@@ -101,7 +101,7 @@ class Measurement:
         """Every effect's signature, measured minus ``model``'s atlas."""
         p = Pairing(self.atlas, "measured", model)
         out = [lr_gain_signature(self.atlas, p), field_signature(self.atlas, p), chromatic_signature(p, self.colour),
-               disparity_signature(p), focus_signature(p), profile_signature(p), front_back_signature(p),
+               disparity_signature(p), focus_signature(p), profile_signature(self.atlas, p), front_back_signature(p),
                misregistration_signature(p), noise_signature(self.noise, self.cfg)]
         return {s.effect: s for s in out}
 

@@ -247,19 +247,41 @@ def _table(atlas: Atlas, keys: list[Key], name: str, channel: int | None = None)
     return {a: (np.asarray(pts[a]), np.stack(bts[a], -1)) for a in pts}
 
 
+PLAUSIBLE: dict[str, tuple[float, float]] = {
+    "efficiency": (0.0, 1.6), "profile": (0.8, 2.5), "size": (0.0, float("inf")), "aniso": (-1.0, 1.0),
+}
+"""The range a moment of any physical PSF lies in; a kernel whose moment falls outside was not measured reliably (a
+sliver of a view, a cell of few pairs under resampling) and that value counts as missing."""
+
+
+def _plausible(attr: str, x: np.ndarray) -> np.ndarray:
+    lo, hi = PLAUSIBLE.get(attr, (-np.inf, np.inf))
+    return np.where((x >= lo) & (x <= hi), x, np.nan)
+
+
 @dataclass
 class Pairing:
-    """The two view-sets a signature compares, and the moments of their whole-field bins (read once)."""
+    """The two view-sets a signature compares, and the moments of a set of cells (by default the whole field's
+    measured bins), read once.
+
+    Attributes:
+        atlas: the atlas holding both view-sets.
+        measured, model: the view-sets' names.
+        keys: the cells (default: every measured whole-field bin).
+    """
 
     atlas: Atlas
     measured: str = "measured"
     model: str = "model"
+    keys: list[Key] | None = None
 
     def __post_init__(self) -> None:
-        self.keys = [(b, -1) for b in self.atlas.measured_bins(-1)]
-        self.c = np.array([FINE.centre(b) for b, _ in self.keys])
+        if self.keys is None:
+            self.keys = [(b, -1) for b in self.atlas.measured_bins(-1)]
+        self.keys = [k for k in self.keys if self.measured in self.atlas.cells[k].kernels and self.model in self.atlas.cells[k].kernels]
+        self.c = np.array([self.atlas.cells[k].mean_coc_px for k in self.keys])
+        self.cbar = self.c
         self.pix = np.array([float(self.atlas.cells[k].pixels.sum()) for k in self.keys])
-        self.cbar = np.array([self.atlas.cells[k].mean_coc_px for k in self.keys])
         self._t: dict[tuple[str, int | None], dict[str, tuple[np.ndarray, np.ndarray]]] = {}
 
     def t(self, name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -268,36 +290,48 @@ class Pairing:
         return self._t[(name, channel)]
 
     def diff(self, attr: str, channel: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(point (n,), boot (B, n)): measured minus simulator of a moment over the whole-field bins."""
+        """(point (n,), boot (B, n)): measured minus simulator of a moment over the cells, missing (NaN) where either
+        side is implausible (:data:`PLAUSIBLE`)."""
         (pm, bm), (ps, bs) = self.t(self.measured, channel)[attr], self.t(self.model, channel)[attr]
-        return pm - ps, bm - bs
+        return _plausible(attr, pm) - _plausible(attr, ps), _plausible(attr, bm) - _plausible(attr, bs)
 
-    def value(self, name: str, unit: str, attr: str, sel: np.ndarray, w: np.ndarray, min_effect: float,
-              channel: int | None = None) -> Value:
-        """The weighted mean of ``attr``'s difference over the bins ``sel``."""
+    def weights(self, attr: str, channel: int | None = None) -> np.ndarray:
+        """(n,) inverse-variance weights of the cells' differences (their bootstrap's robust standard error), 0 where
+        missing."""
+        d, db = self.diff(attr, channel)
+        se = np.asarray(robust_se(db, axis=0), dtype=np.float64)
+        return np.where(np.isfinite(d) & np.isfinite(se) & (se > 0), 1.0 / np.maximum(se, 1e-12) ** 2, 0.0)
+
+    def value(self, name: str, unit: str, attr: str, sel: np.ndarray, min_effect: float, channel: int | None = None) -> Value:
+        """The inverse-variance weighted mean of ``attr``'s difference over the cells ``sel``."""
         d, db = self.diff(attr, channel)
         (pm, _), (ps, _) = self.t(self.measured, channel)[attr], self.t(self.model, channel)[attr]
-        ww = np.where(sel, w, 0.0)
+        ww = np.where(sel, self.weights(attr, channel), 0.0)
         return Value(name, unit, float(_wmean(d, ww)), _wmean(db, ww[None]), min_effect,
-                     float(_wmean(pm, ww)), float(_wmean(ps, ww)))
+                     float(_wmean(_plausible(attr, pm), ww)), float(_wmean(_plausible(attr, ps), ww)))
 
-    def sided_fit(self, attr: str, lo: float, hi: float, channel: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-        """Fit the difference of ``attr`` against each bin's mean CoC c over the bins with ``lo <= |c| <= hi``:
-        ``d(c) = d0 + alpha sign(c) + g_even |c| + g_odd c`` (pixel-weighted). A focus error is ``alpha`` (the same
-        CoC added on both sides), a size that grows differently in front and behind is ``g_odd``; a residual blur
-        or a profile change moves ``d0`` and ``g_even``. Fitted against the bins' own mean CoC, so that a bin whose
-        pixels sit at another CoC in front than behind does not read as a difference. Returns ((d0, alpha,
-        g_even, g_odd), boot (B, 4)), or None with fewer than two bins on either side."""
+    def sided_fit(self, attr: str, lo: float, hi: float, channel: int | None = None,
+                  terms: tuple[str, ...] = ("d0", "alpha", "g_even", "g_odd")) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fit the difference of ``attr`` against each cell's mean CoC c over the cells with ``lo <= |c| <= hi``:
+        ``d(c) = d0 + alpha sign(c) + g_even |c| + g_odd c`` (the ``terms`` asked; inverse-variance weighted). A
+        focus error is ``alpha`` (the same CoC added on both sides), a size that grows differently in front and
+        behind is ``g_odd``; a residual blur or a profile change moves ``d0`` and ``g_even``. Fitted against the
+        cells' own mean CoC, so that a bin whose pixels sit at another CoC in front than behind does not read as a
+        difference. Returns (coefficients in ``terms`` order, boot (B, len(terms))), or None with fewer than two cells
+        on either side."""
         d, db = self.diff(attr, channel)
         c = self.cbar
-        sel = (np.abs(c) >= lo) & (np.abs(c) <= hi) & np.isfinite(d)
+        w = self.weights(attr, channel)
+        sel = (np.abs(c) >= lo) & (np.abs(c) <= hi) & (w > 0)
         if (sel & (c > 0)).sum() < 2 or (sel & (c < 0)).sum() < 2:
             return None
-        w = np.sqrt(self.pix[sel])
-        X = np.stack([np.ones(int(sel.sum())), np.sign(c[sel]), np.abs(c[sel]), c[sel]], 1) * w[:, None]
-        pinv = np.linalg.pinv(X)  # (4, n)
+        cs = c[sel]
+        cols = {"d0": np.ones_like(cs), "alpha": np.sign(cs), "g_even": np.abs(cs), "g_odd": cs}
+        sw = np.sqrt(w[sel])
+        X = np.stack([cols[k] for k in terms], 1) * sw[:, None]
+        pinv = np.linalg.pinv(X)
         bt = np.where(np.isfinite(db[:, sel]), db[:, sel], d[sel][None])
-        return pinv @ (d[sel] * w), (bt * w[None]) @ pinv.T
+        return pinv @ (d[sel] * sw), (bt * sw[None]) @ pinv.T
 
 
 SIZE_PER_COC = 1.0 / 3.0
@@ -339,7 +373,7 @@ def disparity_signature(p: Pairing) -> Signature:
     sel = np.abs(p.c) >= 2.2
     if not sel.any():
         return Signature("disparity_scale", unmeasured="no bin of |CoC| >= 2.2 px is measured")
-    return Signature("disparity_scale", [p.value("split_efficiency", "1", "efficiency", sel, p.pix * p.c**2, 0.03)])
+    return Signature("disparity_scale", [p.value("split_efficiency", "1", "efficiency", sel, 0.03)])
 
 
 def misregistration_signature(p: Pairing) -> Signature:
@@ -347,8 +381,7 @@ def misregistration_signature(p: Pairing) -> Signature:
     sel = np.abs(p.c) < 4.0
     if not sel.any():
         return Signature("misregistration", unmeasured="no bin of |CoC| < 4 px is measured")
-    return Signature("misregistration", [p.value("shift_x", "px", "cx", sel, p.pix, 0.08),
-                                         p.value("shift_y", "px", "cy", sel, p.pix, 0.08)])
+    return Signature("misregistration", [p.value("shift_x", "px", "cx", sel, 0.08), p.value("shift_y", "px", "cy", sel, 0.08)])
 
 
 FOCUS_RANGE_PX = (1.0, 22.0)
@@ -384,24 +417,27 @@ def chromatic_signature(p: Pairing, colour: bool) -> Signature:
 def front_back_signature(p: Pairing) -> Signature:
     """Blur in front of focus against blur behind it at equal |CoC|: how much faster the size grows with |CoC| in
     front (``-2 g_odd`` of the size fit, :meth:`Pairing.sided_fit`) and the profile index's front-minus-back
-    difference (``-2 g_odd`` of the profile fit over |CoC| >= 3 px, per px of |CoC| times the mean |CoC|)."""
+    difference (``-2 alpha`` of a fit ``d0 + alpha sign(c)`` over |CoC| >= 3 px: the index is scale-free, so a
+    shape that differs between the sides differs by a constant)."""
     size = p.sided_fit("size", 3.0, FOCUS_RANGE_PX[1])
-    prof = p.sided_fit("profile", 3.0, 60.0)
+    prof = p.sided_fit("profile", 3.0, 60.0, terms=("d0", "alpha"))
     if size is None or prof is None:
         return Signature("front_back_asymmetry", unmeasured="too few bins measured on both sides of focus (|CoC| >= 3 px)")
     (_, _, _, g), gb = size
-    # the profile index is scale-free: its front/back difference is a constant, the sign(c) term
-    (_, pa, _, _), pb = prof
+    (_, pa), pb = prof
     return Signature("front_back_asymmetry", [Value("size_growth_front_minus_back", "px of size per px of |CoC|", -2 * float(g), -2 * gb[:, 3], 0.012),
                                               Value("profile_front_minus_back", "1", -2 * float(pa), -2 * pb[:, 1], 0.02)])
 
 
-def profile_signature(p: Pairing) -> Signature:
-    """The profile index (:attr:`Moments.profile`) at |CoC| >= 3 px, front and back pooled (pixels x CoC^2)."""
-    sel = np.abs(p.c) >= 3.0
-    if not sel.any():
-        return Signature("psf_profile", unmeasured="no bin of |CoC| >= 3 px is measured")
-    return Signature("psf_profile", [p.value("profile_index", "1", "profile", sel, p.pix * p.c**2, 0.012)])
+def profile_signature(atlas: Atlas, p: Pairing) -> Signature:
+    """The profile index (:attr:`Moments.profile`) of each field zone's kernels at |CoC| >= 3 px, front and back
+    pooled (inverse-variance weighted). Zone by zone, so that blur that grows over the field (a mixture of disc sizes
+    in a whole-field bin, which is centre-heavy) does not read as a profile."""
+    keys = [k for k in atlas.cells if k[1] >= 0 and atlas.cells[k].measured and abs(atlas.cells[k].mean_coc_px) >= 3.0]
+    zp = Pairing(atlas, p.measured, p.model, keys)
+    if not zp.keys:
+        return Signature("psf_profile", unmeasured="no field zone holds a measured kernel of |CoC| >= 3 px")
+    return Signature("psf_profile", [zp.value("profile_index", "1", "profile", np.ones(len(zp.keys), bool), 0.012)])
 
 
 FVP_MIN_COC_PX = 3.0
