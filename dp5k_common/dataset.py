@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DatasetFormatError
+from .errors import BadInputError, DatasetFormatError
 from .io import new_dir_mode, read_image_raw, read_json, to_uint16, write_json_atomic, write_png16, write_tiff_float32
 
 FORMAT_NAME = "dp5k-dataset"
@@ -267,6 +267,7 @@ class DatasetReader:
         root: the dataset folder (holding ``dataset.json`` and ``pairs/``).
 
     Raises:
+        BadInputError: the folder does not exist (exit 3).
         DatasetFormatError: ``dataset.json`` is missing or malformed, or a split lists an id with no pair folder.
     """
 
@@ -274,7 +275,7 @@ class DatasetReader:
         self.root = Path(root)
         index_path = self.root / "dataset.json"
         if not self.root.is_dir():
-            raise DatasetFormatError("dataset folder not found", where=self.root)
+            raise BadInputError("dataset folder not found", where=self.root)  # exit 3: missing, not malformed
         if not index_path.is_file():
             raise DatasetFormatError("missing dataset.json (not a dp5k dataset?)", where=index_path)
         try:

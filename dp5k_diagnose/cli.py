@@ -37,7 +37,7 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.option("--simulator", default=None, metavar="SPEC", help=f"The simulator to diagnose (default: base): {SYNTAX}.")
 @click.option("--model", default=None, metavar="SPEC", help="Deprecated: --simulator SPEC.")
 @out_option("Report folder, replaced on each run.", required=False, default_text="DATASET/diagnose-<simulator>")
-@click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
               help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",

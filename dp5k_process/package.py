@@ -176,8 +176,8 @@ def process_sessions(raw_root: str | os.PathLike[str], out_root: str | os.PathLi
     """
     info = rank_info() if rank is None else rank
     out = Path(out_root)
+    sessions = find_sessions(Path(raw_root))  # the input first: a missing RAW leaves no empty OUT behind
     out.mkdir(parents=True, exist_ok=True)
-    sessions = find_sessions(Path(raw_root))
     outcomes: list[SceneOutcome] = []
     todo = []
     for sd in shard(sessions, info):  # the owner of a scene depends only on the sorted list and the rank count
