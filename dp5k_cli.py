@@ -16,7 +16,7 @@ from typing import Any
 import click
 
 from dp5k_common import __version__
-from dp5k_common.cli_conventions import RESUMES_KEY
+from dp5k_common.cli_conventions import command_resumes
 from dp5k_common.deprecation import collect_deprecations
 from dp5k_common.errors import DP5KError
 from dp5k_common.progress import set_progress_enabled
@@ -56,6 +56,9 @@ class _Group(click.Group):
         module, attr, _ = COMMANDS[name]
         return _with_log_options(getattr(importlib.import_module(module), attr))
 
+    def resolve_command(self, ctx: click.Context, args: list[str]) -> tuple[str | None, click.Command | None, list[str]]:
+        return _note_resumes(ctx, super().resolve_command(ctx, args))
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         with formatter.section("Commands"):
             formatter.write_dl([(name, COMMANDS[name][2]) for name in self.list_commands(ctx)])
@@ -69,7 +72,7 @@ class _Group(click.Group):
                 _report(ctx, f"dp5k: error: {exc.one_line()}{notes.take_suffix()}")
                 ctx.exit(exc.exit_code)
             except KeyboardInterrupt:
-                if ctx.meta.get(RESUMES_KEY):  # set by out_option for the running command (docs/cli.md, "Contract")
+                if ctx.meta.get(RESUMES_KEY):  # noted when the subcommand was resolved (docs/cli.md, "The contract")
                     what = "finished work was kept, run the command again to resume"
                 else:
                     what = "this command does not resume: run it again to start over"
@@ -101,6 +104,19 @@ def _log_option_given(ctx: click.Context, param: click.Parameter, value: Any) ->
         _set_logging(ctx, **{param.name: value})  # type: ignore[arg-type]
 
 
+RESUMES_KEY = "dp5k.resumes"
+"""``click.Context.meta`` key (shared by nested contexts): whether the command being run resumes when run again."""
+
+
+def _note_resumes(ctx: click.Context, resolved: tuple[str | None, click.Command | None, list[str]]
+                  ) -> tuple[str | None, click.Command | None, list[str]]:
+    """Record, before the subcommand parses its arguments, whether it resumes (``out_option(resumes=True)``), for the
+    line an interruption prints."""
+    if resolved[1] is not None:
+        ctx.meta[RESUMES_KEY] = command_resumes(resolved[1])
+    return resolved
+
+
 def _with_log_options(cmd: click.Command) -> click.Command:
     """Give ``cmd`` (and, for a group, each of its subcommands) the global ``-v`` / ``-q``, so that they work after
     the subcommand too: ``dp5k train DS -q`` is ``dp5k -q train DS``. Done once per command object."""
@@ -113,6 +129,10 @@ def _with_log_options(cmd: click.Command) -> click.Command:
         ]
         cmd._dp5k_log_options = True  # type: ignore[attr-defined]
     if isinstance(cmd, click.Group):
+        if not getattr(cmd, "_dp5k_notes_resumes", False):  # a group inside dp5k: its subcommand says it too
+            resolve = cmd.resolve_command
+            cmd.resolve_command = lambda ctx, args: _note_resumes(ctx, resolve(ctx, args))  # type: ignore[method-assign]
+            cmd._dp5k_notes_resumes = True  # type: ignore[attr-defined]
         for sub in cmd.commands.values():
             _with_log_options(sub)
     return cmd

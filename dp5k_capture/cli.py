@@ -21,7 +21,12 @@ CTRL_C_AGAIN_S = 0.05  # a Ctrl-C swallowed by a finalizer is delivered again th
 
 
 @click.command("capture")
-@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
+@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; "
+              "not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...). With --sim: a studio preset: "
+              "demo01, wall, plane (dp5k process calibrates them), boxes (from --sim-scale medium on), near (close-ups "
+              "for studio datasets: its two bodies focus 0.6 and 2.6 m away, too far apart to calibrate); a seed (17, "
+              "rand17); or any other name, which picks a random studio scene that the rig can focus and calibrate in "
+              "(the same name, the same scene).")
 @out_option("Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is "
             "writable); an unwritable OUT is refused before any device is touched. An interrupted scene resumes; a "
             "captured file is never overwritten.", default=Path("raw"), resumes=True)

@@ -29,8 +29,6 @@ F = TypeVar("F", bound=Callable[..., Any])
 DEVICE_CHOICES = "auto|cpu|cuda|cuda:N"
 DEVICE_HELP = "Where the networks run: auto (the first CUDA GPU torch sees, else the CPU), cpu, cuda or cuda:N."
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
-RESUMES_KEY = "dp5k.resumes"
-"""``click.Context.meta`` key: set by :func:`out_option` to whether the running command resumes when run again."""
 
 
 class _LegacyOutArgument(click.Argument):
@@ -104,7 +102,6 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
                                         "give --out only", where="--out")
                 warn_deprecated("OUT as the last argument", "--out OUT")
                 out = legacy_out
-            click.get_current_context().meta[RESUMES_KEY] = resumes  # the interrupted line of dp5k_cli reads it
             if out is not None:
                 check_out_location(out, file=file)
             if out is None:
