@@ -20,6 +20,7 @@ from dp5k_common.cli_conventions import command_resumes
 from dp5k_common.deprecation import collect_deprecations
 from dp5k_common.errors import DP5KError
 from dp5k_common.progress import set_progress_enabled
+from dp5k_common.software import COMMAND_META_KEY
 
 
 # name -> (module, attribute, one-line help). Commands are imported only when run, so ``dp5k --help`` and
@@ -55,6 +56,10 @@ class _Group(click.Group):
             return None
         module, attr, _ = COMMANDS[name]
         return _with_log_options(getattr(importlib.import_module(module), attr))
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta[COMMAND_META_KEY] = ["dp5k", *args]  # the command line, for the provenance of what it writes
+        return super().parse_args(ctx, args)
 
     def resolve_command(self, ctx: click.Context, args: list[str]) -> tuple[str | None, click.Command | None, list[str]]:
         return _note_resumes(ctx, super().resolve_command(ctx, args))

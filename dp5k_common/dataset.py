@@ -315,7 +315,9 @@ class DatasetReader:
                     )
             self.splits[name] = list(ids)
         self._split_of = seen
-        self.extra: dict[str, Any] = {k: v for k, v in index.items() if k not in ("format", "version", "splits")}
+        self.extra: dict[str, Any] = {k: v for k, v in index.items()
+                                      if k not in ("format", "version", "splits", "provenance")}
+        self.provenance: dict[str, Any] | None = index.get("provenance")  # what wrote it (write_index), when known
 
     def ids(self, split: str | None = None) -> list[str]:
         """Pair ids of one split, or of all splits in order train, val, test, others."""
@@ -521,7 +523,12 @@ def write_pair(
 def write_index(
     root: str | os.PathLike[str], splits: Mapping[str, Sequence[str]], **extra: Any
 ) -> Path:
-    """Write ``dataset.json`` atomically. ``splits`` must have train, val and test (lists may be empty)."""
+    """Write ``dataset.json`` atomically. ``splits`` must have train, val and test (lists may be empty).
+
+    It records what wrote it under ``"provenance"`` (:func:`dp5k_common.software.provenance`: dp5k version, git
+    commit, uncommitted changes, command line) unless ``extra`` gives that key."""
+    from .software import PROVENANCE_KEY, provenance
+
     root = Path(root)
     missing = [s for s in SPLITS if s not in splits]
     if missing:
@@ -535,6 +542,7 @@ def write_index(
         if key in obj:
             raise DatasetFormatError(f"extra key {key!r} clashes with a format key", where=root)
         obj[key] = value
+    obj.setdefault(PROVENANCE_KEY, provenance())
     write_json_atomic(root / "dataset.json", obj)
     return root / "dataset.json"
 

@@ -48,6 +48,7 @@ from dp5k_common.io import finite_json, write_bytes_atomic, write_json_atomic, w
 from dp5k_common.outdir import check_out_dir
 from dp5k_common.preview import depth_preview
 from dp5k_common.progress import progress
+from dp5k_common.software import provenance
 
 from .graycode import GrayCodeConfig, n_patterns
 from .pipeline import ProcessConfig, depth_for_camera
@@ -186,7 +187,7 @@ def sl_depth(images: Path, calibration: Path, out: Path, projector: tuple[int, i
     title = "LOW QUALITY" if q["low"] else "camera 0 depth"
     report["preview_range_m"] = list(depth_preview(depth_m, out / "depth_preview.png", title))
     st.save_yaml(out / "calibration.yaml")
-    write_json_atomic(out / "report.json", finite_json(report))
+    write_json_atomic(out / "report.json", finite_json({**report, "provenance": provenance()}))
     write_report_md(out / "report.md", report)
     return report
 

@@ -36,6 +36,7 @@ from dp5k_common.errors import BadInputError, EmptySplitError
 from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
 from dp5k_common.run_progress import RunProgress, canonical
+from dp5k_common.software import provenance
 from dp5k_learn.batch import DPBatch
 from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
 from dp5k_learn.distributed import resolve_device
@@ -245,6 +246,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         "checkpoint": next((str(spec.checkpoint) for spec in specs if spec.is_neural), None), "device": str(dev),
         "metric_definitions": "masked MAE/PSNR/SSIM (dp5k_learn.metrics), mean of left and right view, mean over pairs",
         "fitted_parameters": fitted, "fit_pairs": len(fit_batches or []), "means": means, "per_pair": per_pair,
+        "provenance": provenance(),
     }
     write_json_atomic(out / "metrics.json", report)
     with atomic_path(out / "table.md") as tmp:
