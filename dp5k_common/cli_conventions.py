@@ -80,7 +80,7 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
         resumes: a rerun after an interruption continues in OUT (the interrupted line then says so;
             :func:`command_resumes`).
 
-    Before the command's body runs, an OUT given on the command line is checked (:func:`check_out_location`): a file
+    Before the command's body runs, OUT (given, or ``default``) is checked (:func:`check_out_location`): a file
     (for a folder OUT), a folder (for a file OUT), a path under a file or an unwritable place is refused in one line,
     exit 3, and nothing is created. Commands make OUT only once their inputs were checked.
     """
@@ -102,10 +102,10 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
                                         "give --out only", where="--out")
                 warn_deprecated("OUT as the last argument", "--out OUT")
                 out = legacy_out
-            if out is not None:
-                check_out_location(out, file=file)
             if out is None:
                 out = default
+            if out is not None:  # given, or the fixed default (a default derived from the inputs: the command checks it)
+                check_out_location(out, file=file)
             if out is None and required:
                 raise click.MissingParameter(ctx=click.get_current_context(), param=out_param)
             return fn(*args, out=out, **kwargs)

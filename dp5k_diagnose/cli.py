@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import device_option, out_option
+from dp5k_common.cli_conventions import check_out_location, device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 from dp5k_learn.config import FinetuneConfig
@@ -83,6 +83,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
                                 where="--sharp-f-number")
     n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out or (dataset / f"diagnose-{spec.folder_name()}")
+    check_out_location(out)  # the derived default too, before any work (docs/cli.md, "The contract")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)
     res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import out_option, overwrite_option, refuse_earlier_run, resume_option
+from dp5k_common.cli_conventions import check_out_location, out_option, overwrite_option, refuse_earlier_run, resume_option
 from dp5k_common.errors import BadInputError
 
 from .filters import FilterConfig
@@ -124,6 +124,8 @@ def validate_depth_command(capture: Path, out: Path | None, camera: str, intrins
     from .validate import validate_depth
 
     cfg = ProcessConfig(intrinsics=None if intrinsics is None else str(intrinsics))
-    res = validate_depth(capture, out or (Path(capture) / "validate-depth"), cfg, camera=camera)
+    out = out or Path(capture) / "validate-depth"
+    check_out_location(out)  # the derived default too (an explicit --out was checked already)
+    res = validate_depth(capture, out, cfg, camera=camera)
     click.echo(f"relative error (Eq. 4): {100 * res['relative_error']:.3f} % over {res['n_points']} points at "
                f"{res['mean_depth_m']:.3f} m mean depth (paper: 0.59 %, RealSense D415: 2 %)")

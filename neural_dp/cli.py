@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import device_option, out_option
+from dp5k_common.cli_conventions import check_out_location, device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 from dp5k_learn.cli_options import check_training_inputs, config_overrides, prepare_run_dir, report_run, training_options
@@ -42,6 +42,7 @@ def train_command(dataset: Path, out: Path | None, config_file: Path | None, epo
     cfg = load_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop_size, device, seed))
     check_training_inputs(dataset)
     run_dir = out or default_run_dir(dataset)
+    check_out_location(run_dir)  # the derived default too (an explicit --out was checked already)
     result = train(dataset, run_dir, cfg, resume=prepare_run_dir(run_dir, resume, overwrite))
     click.echo(report_run(run_dir, result))
 
@@ -99,8 +100,9 @@ def evaluate_command(dataset: Path, split: str, out: Path | None, simulators: tu
     from .evaluate import evaluate
 
     DatasetReader(dataset).ids(split)  # the input first (missing: exit 3), before the simulators are looked for
-    specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
     out = out or dataset.resolve().parent / f"{dataset.resolve().name}-eval-{split}"
+    check_out_location(out)  # the derived default too (an explicit --out was checked already)
+    specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
     result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures,
                       fit_pairs=fit_pairs)
     click.echo(result.table_md.rstrip())

@@ -118,6 +118,28 @@ def test_an_unusable_out_is_one_line_exit_3_and_creates_nothing(workdir: Path) -
             assert listing(workdir) == before, (args, sorted(set(listing(workdir)) - set(before)))
 
 
+# Writers whose OUT has a default: a fixed folder, or one derived from the input (DATASET = "ds" in workdir).
+DEFAULT_OUT = {"capture": "raw", "demo": "demo-out", "train": "ds-neural_dp", "evaluate": "ds-eval-test",
+               "diagnose": "ds/diagnose-base", "validate-depth": "ds/validate-depth"}
+
+
+def test_a_default_out_is_checked_as_a_given_one(workdir: Path) -> None:
+    """Where --out has a default, a file in its place is refused the same way (one line, exit 3, before any work)."""
+    with_default = {name for name, cmd in writers().items()
+                    if "Default:" in (next(p for p in cmd.params if p.name == "out").help or "")}
+    assert with_default == set(DEFAULT_OUT)
+    for name, default in DEFAULT_OUT.items():
+        (workdir / default).parent.mkdir(parents=True, exist_ok=True)
+        (workdir / default).write_text("in the way")
+        before = listing(workdir)
+        args = [*name.split(), *required_args(writers()[name], Path("ds")), *NEEDS.get(name, [])]
+        code, lines, text = invoke(args)
+        assert code == 3 and len(lines) == 1 and "Traceback" not in text, (args, text)
+        assert f"{default}: not a folder" in lines[0], (args, text)
+        assert listing(workdir) == before, args
+        (workdir / default).unlink()
+
+
 def test_a_missing_input_is_exit_3_and_out_is_not_made(workdir: Path) -> None:
     """Every required path input missing: one line naming it, exit 3 (not 4: it is missing, not malformed), and OUT
     is not created."""
