@@ -81,9 +81,9 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
         if not (sharp_n >= 0 and sharp_n < float("inf")):
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
+    check_out_location(out or dataset / f"diagnose-{spec.folder_name()}")  # the default too, before any work
     n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out or (dataset / f"diagnose-{spec.folder_name()}")
-    check_out_location(out)  # the derived default too, before any work (docs/cli.md, "The contract")
     detect = DetectConfig(nominal_shot_var=shot_var, nominal_read_sigma=read_sigma)
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)
     res = run_diagnose(dataset, spec, out, DiagnoseConfig(seed=seed, fit_pairs=n_fit, detect=detect, neural=neural,
