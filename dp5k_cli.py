@@ -16,9 +16,11 @@ from typing import Any
 import click
 
 from dp5k_common import __version__
+from dp5k_common.cli_conventions import command_resumes
 from dp5k_common.deprecation import collect_deprecations
 from dp5k_common.errors import DP5KError
 from dp5k_common.progress import set_progress_enabled
+from dp5k_common.software import COMMAND_META_KEY
 
 
 # name -> (module, attribute, one-line help). Commands are imported only when run, so ``dp5k --help`` and
@@ -53,7 +55,14 @@ class _Group(click.Group):
         if name not in COMMANDS:
             return None
         module, attr, _ = COMMANDS[name]
-        return getattr(importlib.import_module(module), attr)
+        return _with_log_options(getattr(importlib.import_module(module), attr))
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta[COMMAND_META_KEY] = ["dp5k", *args]  # the command line, for the provenance of what it writes
+        return super().parse_args(ctx, args)
+
+    def resolve_command(self, ctx: click.Context, args: list[str]) -> tuple[str | None, click.Command | None, list[str]]:
+        return _note_resumes(ctx, super().resolve_command(ctx, args))
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         with formatter.section("Commands"):
@@ -68,11 +77,70 @@ class _Group(click.Group):
                 _report(ctx, f"dp5k: error: {exc.one_line()}{notes.take_suffix()}")
                 ctx.exit(exc.exit_code)
             except KeyboardInterrupt:
-                _report(ctx, f"dp5k: interrupted; finished work was kept, run the command again to resume{notes.take_suffix()}")
+                if ctx.meta.get(RESUMES_KEY):  # noted when the subcommand was resolved (docs/cli.md, "The contract")
+                    what = "finished work was kept, run the command again to resume"
+                else:
+                    what = "this command does not resume: run it again to start over"
+                _report(ctx, f"dp5k: interrupted; {what}{notes.take_suffix()}")
                 ctx.exit(130)
             except MemoryError:
                 _report(ctx, f"dp5k: error: out of memory; try a smaller size or fewer workers{notes.take_suffix()}")
                 ctx.exit(1)
+
+
+VERBOSE_HELP = "More log output (-vv for debug); show tracebacks on errors."
+QUIET_HELP = "Only warnings and errors; no progress bars."
+
+
+def _set_logging(ctx: click.Context, verbose: int = 0, quiet: bool = False) -> None:
+    """Add ``verbose`` / ``quiet`` to what the command line gave so far (before or after the subcommand) and set the
+    log level and progress bars from the sum."""
+    state = ctx.find_root().ensure_object(dict)
+    state["verbose"] = state.get("verbose", 0) + verbose
+    state["quiet"] = state.get("quiet", False) or quiet
+    level = logging.WARNING if state["quiet"] else (logging.DEBUG if state["verbose"] >= 2 else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
+    if state["quiet"]:  # DP5K_PROGRESS=0 in the environment also hides them (CI logs)
+        set_progress_enabled(False)
+
+
+def _log_option_given(ctx: click.Context, param: click.Parameter, value: Any) -> None:
+    if value:
+        _set_logging(ctx, **{param.name: value})  # type: ignore[arg-type]
+
+
+RESUMES_KEY = "dp5k.resumes"
+"""``click.Context.meta`` key (shared by nested contexts): whether the command being run resumes when run again."""
+
+
+def _note_resumes(ctx: click.Context, resolved: tuple[str | None, click.Command | None, list[str]]
+                  ) -> tuple[str | None, click.Command | None, list[str]]:
+    """Record, before the subcommand parses its arguments, whether it resumes (``out_option(resumes=True)``), for the
+    line an interruption prints."""
+    if resolved[1] is not None:
+        ctx.meta[RESUMES_KEY] = command_resumes(resolved[1])
+    return resolved
+
+
+def _with_log_options(cmd: click.Command) -> click.Command:
+    """Give ``cmd`` (and, for a group, each of its subcommands) the global ``-v`` / ``-q``, so that they work after
+    the subcommand too: ``dp5k train DS -q`` is ``dp5k -q train DS``. Done once per command object."""
+    if not getattr(cmd, "_dp5k_log_options", False):
+        cmd.params += [
+            click.Option(["-v", "--verbose", "verbose"], count=True, expose_value=False, callback=_log_option_given,
+                         help=VERBOSE_HELP),
+            click.Option(["-q", "--quiet", "quiet"], is_flag=True, expose_value=False, callback=_log_option_given,
+                         help=QUIET_HELP),
+        ]
+        cmd._dp5k_log_options = True  # type: ignore[attr-defined]
+    if isinstance(cmd, click.Group):
+        if not getattr(cmd, "_dp5k_notes_resumes", False):  # a group inside dp5k: its subcommand says it too
+            resolve = cmd.resolve_command
+            cmd.resolve_command = lambda ctx, args: _note_resumes(ctx, resolve(ctx, args))  # type: ignore[method-assign]
+            cmd._dp5k_notes_resumes = True  # type: ignore[attr-defined]
+        for sub in cmd.commands.values():
+            _with_log_options(sub)
+    return cmd
 
 
 def _report(ctx: click.Context, line: str) -> None:
@@ -83,8 +151,8 @@ def _report(ctx: click.Context, line: str) -> None:
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.option("-v", "--verbose", count=True, help="More log output (-vv for debug); show tracebacks on errors.")
-@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors; no progress bars.")
+@click.option("-v", "--verbose", count=True, help=VERBOSE_HELP + " Also after the command.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP + " Also after the command.")
 @click.version_option(__version__, prog_name="dp5k")
 @click.pass_context
 def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
@@ -94,12 +162,8 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     aligned sharp / DP / depth / CoC pairs, train and compare DP simulators, and diagnose what a
     simulator gets wrong.
     """
-    ctx.ensure_object(dict)
-    ctx.obj["verbose"] = verbose
-    level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
-    if quiet:  # DP5K_PROGRESS=0 in the environment also hides them (CI logs)
-        set_progress_enabled(False)
+    ctx.ensure_object(dict).update(verbose=0, quiet=False)
+    _set_logging(ctx, verbose, quiet)
 
 
 if __name__ == "__main__":

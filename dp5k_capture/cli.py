@@ -21,15 +21,20 @@ CTRL_C_AGAIN_S = 0.05  # a Ctrl-C swallowed by a finalizer is delivered again th
 
 
 @click.command("capture")
-@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...).")
+@click.option("--scene", required=True, help="Scene name (one folder under --out): 1-100 letters, digits, '.', '_', '-'; "
+              "not starting with '.' or '-', no Windows device names (CON, NUL, COM1, ...). With --sim: a studio preset: "
+              "demo01, wall, plane (dp5k process calibrates them), boxes (from --sim-scale medium on), near (close-ups "
+              "for studio datasets: its two bodies focus 0.6 and 2.6 m away, too far apart to calibrate); a seed (17, "
+              "rand17); or any other name, which picks a random studio scene that the rig can focus and calibrate in "
+              "(the same name, the same scene).")
 @out_option("Raw session root; the scene goes to OUT/SCENE. Created if missing (when its nearest existing parent is "
             "writable); an unwritable OUT is refused before any device is touched. An interrupted scene resumes; a "
-            "captured file is never overwritten.", default=Path("raw"))
+            "captured file is never overwritten.", default=Path("raw"), resumes=True)
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig.toml (body serials, focus points, projector port, exposure plan).")
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (simulated bodies on a simulated USB bus, projector on a pty, virtual studio).")
 @click.option("--sim-scale", default="small", show_default=True, help="Studio scale for --sim: small (336x224 raw, the smallest that processing calibrates reliably), medium, paper, or a sensor downscale factor.")
-@click.option("--seed", default=0, show_default=True, help="Studio seed for --sim.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Studio seed for --sim.")
 @click.option("--sim-faults", default="", help="Faults of the simulated bodies, e.g. 'disconnect@37,busy=0.1' or 'cam1.hang@5' "
               "(disconnect/stall/hang@K: during the K-th raw download; busy=P: DeviceBusy with probability P; CAM. = one body).")
 @click.option("--sim-rig", "sim_rig", type=click.Path(dir_okay=False, path_type=Path), default=None,

@@ -22,6 +22,7 @@ import click
 
 from .deprecation import warn_deprecated
 from .errors import BadInputError
+from .outdir import check_out_dir
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -64,7 +65,7 @@ def device_option(help_suffix: str = "", *, config_default: bool = False) -> Cal
 
 
 def out_option(help: str, *, default: Path | None = None, required: bool = True, legacy_positional: bool = False,
-               file: bool = False, default_text: str | None = None) -> Callable[[F], F]:
+               file: bool = False, default_text: str | None = None, resumes: bool = False) -> Callable[[F], F]:
     """``--out`` / ``-o`` (the callback's ``out`` keyword), the one way every command is told where to write.
 
     Args:
@@ -75,7 +76,13 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
             (it then receives None when neither spelling was given).
         legacy_positional: the command used to take OUT as its last argument; that spelling still works, with a
             deprecation line. Put this decorator right below the command's last ``@click.argument``.
-        file: OUT is a file (``studio render``), not a folder (only changes the metavar).
+        file: OUT is a file (``studio render``), not a folder: an existing file is fine (replaced), a folder is not.
+        resumes: a rerun after an interruption continues in OUT (the interrupted line then says so;
+            :func:`command_resumes`).
+
+    Before the command's body runs, OUT (given, or ``default``) is checked (:func:`check_out_location`): a file
+    (for a folder OUT), a folder (for a file OUT), a path under a file or an unwritable place is refused in one line,
+    exit 3, and nothing is created. Commands make OUT only once their inputs were checked.
     """
     metavar = "FILE" if file else "DIR"
     text = help
@@ -97,6 +104,8 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
                 out = legacy_out
             if out is None:
                 out = default
+            if out is not None:  # given, or the fixed default (a default derived from the inputs: the command checks it)
+                check_out_location(out, file=file)
             if out is None and required:
                 raise click.MissingParameter(ctx=click.get_current_context(), param=out_param)
             return fn(*args, out=out, **kwargs)
@@ -108,9 +117,31 @@ def out_option(help: str, *, default: Path | None = None, required: bool = True,
         if legacy_positional:
             params.append(_LegacyOutArgument(["legacy_out"], required=False, type=click.Path(path_type=Path)))
         run.__click_params__ = params  # type: ignore[attr-defined]
+        run.dp5k_resumes = resumes  # type: ignore[attr-defined]  # read by command_resumes (functools.wraps copies it)
         return run  # type: ignore[return-value]
 
     return wrap
+
+
+def check_out_location(out: Path, *, file: bool = False) -> None:
+    """Refuse an OUT that cannot be written before any work: a file where a folder goes (or a folder where a file
+    goes), a path under a file, a read-only place. Creates nothing.
+
+    Raises:
+        BadInputError: one line naming OUT (exit 3).
+    """
+    out = Path(out)
+    if file:
+        if out.is_dir():
+            raise BadInputError("is a folder; --out names the file to write", where=out)
+        check_out_dir(out.parent, create=False)
+    else:
+        check_out_dir(out, create=False)
+
+
+def command_resumes(command: click.Command) -> bool:
+    """Whether running ``command`` again continues where an interrupted run stopped (``out_option(resumes=True)``)."""
+    return bool(getattr(command.callback, "dp5k_resumes", False))
 
 
 def resume_option(help: str, *, default: bool = True) -> Callable[[F], F]:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DatasetFormatError
+from .errors import BadInputError, DatasetFormatError
 from .io import new_dir_mode, read_image_raw, read_json, to_uint16, write_json_atomic, write_png16, write_tiff_float32
 
 FORMAT_NAME = "dp5k-dataset"
@@ -267,6 +267,7 @@ class DatasetReader:
         root: the dataset folder (holding ``dataset.json`` and ``pairs/``).
 
     Raises:
+        BadInputError: the folder does not exist (exit 3).
         DatasetFormatError: ``dataset.json`` is missing or malformed, or a split lists an id with no pair folder.
     """
 
@@ -274,7 +275,7 @@ class DatasetReader:
         self.root = Path(root)
         index_path = self.root / "dataset.json"
         if not self.root.is_dir():
-            raise DatasetFormatError("dataset folder not found", where=self.root)
+            raise BadInputError("dataset folder not found", where=self.root)  # exit 3: missing, not malformed
         if not index_path.is_file():
             raise DatasetFormatError("missing dataset.json (not a dp5k dataset?)", where=index_path)
         try:
@@ -314,7 +315,9 @@ class DatasetReader:
                     )
             self.splits[name] = list(ids)
         self._split_of = seen
-        self.extra: dict[str, Any] = {k: v for k, v in index.items() if k not in ("format", "version", "splits")}
+        self.extra: dict[str, Any] = {k: v for k, v in index.items()
+                                      if k not in ("format", "version", "splits", "provenance")}
+        self.provenance: dict[str, Any] | None = index.get("provenance")  # what wrote it (write_index), when known
 
     def ids(self, split: str | None = None) -> list[str]:
         """Pair ids of one split, or of all splits in order train, val, test, others."""
@@ -520,7 +523,12 @@ def write_pair(
 def write_index(
     root: str | os.PathLike[str], splits: Mapping[str, Sequence[str]], **extra: Any
 ) -> Path:
-    """Write ``dataset.json`` atomically. ``splits`` must have train, val and test (lists may be empty)."""
+    """Write ``dataset.json`` atomically. ``splits`` must have train, val and test (lists may be empty).
+
+    It records what wrote it under ``"provenance"`` (:func:`dp5k_common.software.provenance`: dp5k version, git
+    commit, uncommitted changes, command line) unless ``extra`` gives that key."""
+    from .software import PROVENANCE_KEY, provenance
+
     root = Path(root)
     missing = [s for s in SPLITS if s not in splits]
     if missing:
@@ -534,6 +542,7 @@ def write_index(
         if key in obj:
             raise DatasetFormatError(f"extra key {key!r} clashes with a format key", where=root)
         obj[key] = value
+    obj.setdefault(PROVENANCE_KEY, provenance())
     write_json_atomic(root / "dataset.json", obj)
     return root / "dataset.json"
 

@@ -9,7 +9,7 @@ import click
 from dp5k_common.cli_conventions import device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
-from dp5k_learn.cli_options import config_overrides, prepare_run_dir, report_run, training_options
+from dp5k_learn.cli_options import check_training_inputs, config_overrides, prepare_run_dir, report_run, training_options
 from neural_dp.registry import DIAGNOSED_PREFIX, NEURAL_PREFIX, SYNTAX, spec_texts
 
 
@@ -20,7 +20,7 @@ def deblur_group() -> None:
 
 @deblur_group.command("train")
 @click.argument("dataset", type=click.Path(path_type=Path))
-@out_option("Run folder (config.json, last.pt, best.pt, history.json).")
+@out_option("Run folder (config.json, last.pt, best.pt, history.json).", resumes=True)
 @training_options("dp5k_deblur/config.py")
 @click.option("--init-from", type=click.Path(path_type=Path), default=None,
               help="Start a fresh run from this deblurrer checkpoint's weights (fine-tuning).")
@@ -36,6 +36,7 @@ def deblur_train_command(dataset: Path, out: Path, config_file: Path | None, epo
     from .train import train_deblur
 
     cfg = load_deblur_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop_size, device, seed))
+    check_training_inputs(dataset, init_from)
     result = train_deblur(dataset, out, cfg, resume=prepare_run_dir(out, resume, overwrite), init_from=init_from)
     click.echo(report_run(out, result))
 
@@ -46,7 +47,7 @@ def deblur_train_command(dataset: Path, out: Path, config_file: Path | None, epo
 @click.option("--checkpoint", type=click.Path(path_type=Path), required=True, help="A dp5k deblur train checkpoint (best.pt).")
 @click.option("--split", default="test", show_default=True, help="Split to evaluate.")
 @device_option()
-@click.option("--max-pairs", type=int, default=0, help="Evaluate at most this many pairs (0 = all).")
+@click.option("--max-pairs", type=click.IntRange(min=0), default=0, help="Evaluate at most this many pairs (0 = all).")
 def deblur_evaluate_command(dataset: Path, out: Path, checkpoint: Path, split: str, device: str, max_pairs: int) -> None:
     """Masked MAE / PSNR / SSIM of the deblurred image against sharp, beside the blurred input L+R."""
     from dp5k_learn.distributed import resolve_device
@@ -68,7 +69,7 @@ def study_group() -> None:
 @click.argument("rgbd_dir", type=click.Path(path_type=Path))
 @click.argument("measured", type=click.Path(path_type=Path))
 @out_option("Study folder (tables.md, study.json; per test set table3/table4 .md/.json, differences.json, figure.png; "
-            "synth/, runs/, neural/ inside); an interrupted study resumes in it.")
+            "synth/, runs/, neural/ inside); an interrupted study resumes in it.", resumes=True)
 @click.option("--real", "real_pairs", type=click.Path(path_type=Path), default=None,
               help="A second test set of real pairs, any format-v1 dataset with train and test splits (e.g. "
                    "'dp5k import sdirt', split by photo): its test split is scored, its train split feeds its own "
@@ -93,13 +94,13 @@ def study_group() -> None:
 @click.option("--few-real-pairs", type=click.IntRange(1), default=4, show_default=True,
               help="Measured train pairs of the transfer setting.")
 @click.option("--finetune-epochs", type=click.IntRange(1), default=10, show_default=True)
-@click.option("--max-coc-px", type=float, default=None, help="Synthesize's sensor adjustment (default: the frames' pitch).")
+@click.option("--max-coc-px", type=click.FloatRange(min=0, min_open=True), default=None, help="Synthesize's sensor adjustment (default: the frames' pitch).")
 @click.option("--encoding", type=click.Choice(["srgb", "linear"]), default="linear", show_default=True,
               help="How the frames' image.png is encoded.")
 @device_option()
 @click.option("--seeds", default="0,1,2", show_default=True, metavar="A,B,...",
               help="Seeds; each synthesizes, trains and fine-tunes everything again (the intervals span them).")
-@click.option("--seed", type=int, default=None, help="Deprecated: --seeds N (one seed).")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Deprecated: --seeds N (one seed).")
 def study_downstream_command(rgbd_dir: Path, measured: Path, out: Path, real_pairs: Path | None, simulators: tuple[str, ...],
                              legacy_names: str | None, neural_checkpoint: Path | None, diagnose_report: Path | None,
                              train_neural: bool, neural_channels: int, neural_levels: int,

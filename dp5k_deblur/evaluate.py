@@ -20,6 +20,7 @@ from torch import Tensor
 
 from dp5k_common.errors import BadInputError
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
+from dp5k_common.software import provenance
 from dp5k_common.transfer import linear_to_srgb
 from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
 
@@ -107,6 +108,7 @@ def evaluate_deblur(dataset: str | os.PathLike[str], checkpoint: str | os.PathLi
     scores = score(net, dataset, split, device, figures_dir=out / "figures", max_pairs=max_pairs)
     write_json_atomic(out / "metrics.json", {"dataset": str(dataset), "split": split, "checkpoint": str(checkpoint),
                                              "mask": "valid depth (whole image for pairs without depth)",
-                                             "input": "the blurred input L + R", **scores.to_json()})
+                                             "input": "the blurred input L + R", **scores.to_json(),
+                                             "provenance": provenance()})
     write_bytes_atomic(out / "table.md", table_md(scores).encode())
     return scores

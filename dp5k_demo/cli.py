@@ -18,11 +18,12 @@ log = logging.getLogger(__name__)
 
 
 @click.command("demo")
-@out_option("Folder for every stage's output and the report.", default=Path("demo-out"), legacy_positional=True)
+@out_option("Folder for every stage's output and the report.", default=Path("demo-out"), legacy_positional=True,
+            resumes=True)
 @click.option("--scale", type=click.Choice(list(SCALES)), default="medium", show_default=True,
               help="small: a quick look (what the test suite runs); medium: the default demo; paper: 1680x1120 (hours). "
                    "Timings: README.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of scenes, splits and the hidden effect.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of scenes, splits and the hidden effect.")
 @resume_option("Reuse the stages an earlier run finished in OUT; --no-resume refuses an OUT that holds some.")
 @overwrite_option("Rerun every stage, replacing what an earlier run left in OUT.")
 @click.option("--force", "legacy_force", is_flag=True, help="Deprecated: --overwrite.")

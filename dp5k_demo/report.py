@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
+from dp5k_common.software import provenance
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222;line-height:1.45}
@@ -84,5 +85,6 @@ class Report:
         )
         path = out_dir / f"{name}.html"
         write_bytes_atomic(path, page.encode())
-        write_json_atomic(out_dir / f"{name}.json", {s.title: s.data for s in self.sections})
+        write_json_atomic(out_dir / f"{name}.json",
+                          {**{s.title: s.data for s in self.sections}, "provenance": provenance()})
         return path

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import device_option, out_option
+from dp5k_common.cli_conventions import check_out_location, device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
 from dp5k_learn.config import FinetuneConfig
@@ -37,7 +37,7 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @click.option("--simulator", default=None, metavar="SPEC", help=f"The simulator to diagnose (default: base): {SYNTAX}.")
 @click.option("--model", default=None, metavar="SPEC", help="Deprecated: --simulator SPEC.")
 @out_option("Report folder, replaced on each run.", required=False, default_text="DATASET/diagnose-<simulator>")
-@click.option("--seed", default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
               help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
@@ -82,6 +82,7 @@ def diagnose_command(dataset: Path, simulator: str | None, model: str | None, ou
         if not (sharp_n >= 0 and sharp_n < float("inf")):
             raise BadInputError(f"--sharp-f-number must be 'auto' or a number >= 0 (0 = all-in-focus), got {sharp_f_number!r}",
                                 where="--sharp-f-number")
+    check_out_location(out or dataset / f"diagnose-{spec.folder_name()}")  # the default too, before any work
     n_fit = parse_fit_pairs(fit_pairs, dataset, auto_fit_pairs)  # last: "auto" reads the dataset
     out = out or (dataset / f"diagnose-{spec.folder_name()}")
     neural = NeuralReachConfig(finetune=FinetuneConfig(steps=neural_steps), device=device)

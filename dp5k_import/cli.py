@@ -43,16 +43,16 @@ def parse_crop(values: tuple[str, ...]) -> str | dict[str, Any] | None:
 @click.option("--tile", default=None,
               help="Cut each frame into WxH tiles (pairs); 'none' keeps whole frames. Default: 192x128 for sdirt, "
                    "whole frames for the others.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the scene split (sources without their own).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the scene split (sources without their own).")
 @click.option("--crop", "crop", multiple=True,
               help="dp5k: 'release' (default: the release reader's region of interest, cam0 rows 38-1062 x columns "
                    "88-1112, cam1 38-1062 x 488-1512), 'none', or per camera CAM=ROW0:ROW1,COL0:COL1 (repeatable).")
 @click.option("--curve", type=click.Choice(["srgb", "linear"]), default=None,
               help="dp5k, dpdd: transfer curve of the images, undone on load (default srgb: Canon DPP's output, 8- "
                    "and 16-bit alike; IEC 61966-2-1).")
-@click.option("--focal-length-mm", type=float, default=None,
+@click.option("--focal-length-mm", type=click.FloatRange(min=0, min_open=True), default=None,
               help="dp5k: thin-lens focal length (default 85, the release reader's).")
-@click.option("--f-number", type=float, default=None, help="dpdd: f-number of the DP views (default 4; not in the files).")
+@click.option("--f-number", type=click.FloatRange(min=0, min_open=True), default=None, help="dpdd: f-number of the DP views (default 4; not in the files).")
 @click.option("--include-unsharp", is_flag=True, default=None,
               help="sdirt: also the box and casual scenes (depth, no sharp frame): sharp = left + right at f/4, for "
                    "depth-from-DP evaluation only.")
@@ -99,6 +99,8 @@ def import_command(kind: str, src: Path, out: Path, tile: str | None, seed: int,
             w, h = (int(v) for v in tile.lower().split("x"))
         except ValueError as exc:
             raise BadInputError(f"--tile must be WxH or none, got {tile!r}", where="--tile") from exc
+        if w < 16 or h < 16:
+            raise BadInputError(f"--tile must be at least 16x16, got {tile!r}", where="--tile")
         size = (w, h)
     splits = import_dataset(kind, src, out, tile=size, seed=seed, resume=resume, crop=parse_crop(crop), curve=curve,
                             focal_length_mm=focal_length_mm, f_number=f_number, include_unsharp=include_unsharp or None,

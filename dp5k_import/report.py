@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
+from dp5k_common.software import provenance
 from dp5k_common.optics import coc_diameter_px
 from dp5k_common.preview import contact_sheet
 
@@ -80,7 +81,8 @@ def write_report(root: Path, command: str, splits: Mapping[str, Sequence[str]], 
     summary = {"command": command, "written": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                "resumed": resumed, "sources": len(records) + len(failures), "imported": len(records),
                "failed": len(failures), "pairs": {k: len(v) for k, v in splits.items()}, "sources_per_split": per_split,
-               "tile": list(tile) if tile else None, "split_note": split_note, "scenes": records, "failures": failures}
+               "tile": list(tile) if tile else None, "split_note": split_note, "scenes": records, "failures": failures,
+               "provenance": provenance()}
     write_json_atomic(root / "report.json", summary)
     lines = [f"# Import report ({command})", "",
              f"{len(records)} of {len(records) + len(failures)} sources imported"

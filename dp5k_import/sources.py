@@ -15,6 +15,7 @@ from .capture import SceneSource
 from .dp5k_release import dp5k_sources
 from .dpdd import dpdd_sources
 from .generic import generic_sources
+from .plan import read_previous
 from .sdirt import sdirt_sources
 from .writer import write_imported
 
@@ -50,6 +51,8 @@ def import_dataset(kind: str, src: str | os.PathLike[str], out: str | os.PathLik
     importer's own default; ``resume``: continue a partial import, :func:`~.writer.write_imported`). Options the
     importer does not take are ignored when None (or False), else an error. OUT is checked before SRC is read."""
     check_out_dir(Path(out), create=False)
+    if not resume:
+        read_previous(Path(out), resume=False)  # an existing dataset is refused before SRC is read
     if kind not in IMPORTERS:
         raise BadInputError(f"unknown import source {kind!r} (known: {', '.join(IMPORTERS)})")
     imp = IMPORTERS[kind]

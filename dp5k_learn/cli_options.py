@@ -23,14 +23,14 @@ def training_options(config_module: str) -> Callable[[F], F]:
     options = [
         click.option("--config", "config_file", type=click.Path(path_type=Path), default=None,
                      help=f"TOML (or JSON) config file; see {config_module}."),
-        click.option("--epochs", type=int, default=None, help="Override optim.epochs."),
-        click.option("--batch-size", type=int, default=None, help="Override data.batch_size (per process)."),
-        click.option("--lr", type=float, default=None, help="Override optim.lr."),
-        click.option("--crop-size", type=int, default=None, metavar="PX",
+        click.option("--epochs", type=click.IntRange(min=1), default=None, help="Override optim.epochs."),
+        click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Override data.batch_size (per process)."),
+        click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Override optim.lr."),
+        click.option("--crop-size", type=click.IntRange(min=1), default=None, metavar="PX",
                      help="Override data.crop_px: the side of the square training patches, px."),
-        click.option("--crop", "legacy_crop", type=int, default=None, metavar="PX", help="Deprecated: --crop-size PX."),
+        click.option("--crop", "legacy_crop", type=click.IntRange(min=1), default=None, metavar="PX", help="Deprecated: --crop-size PX."),
         device_option(config_default=True),
-        click.option("--seed", type=int, default=None, help="Override seed."),
+        click.option("--seed", type=click.IntRange(min=0), default=None, help="Override seed."),
         click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Any config override; repeatable."),
         resume_option("Continue from OUT's last.pt when there is one; --no-resume refuses an OUT that holds one."),
         overwrite_option("Start afresh in OUT, deleting an earlier run's last.pt, best.pt and history.json."),
@@ -62,6 +62,22 @@ def config_overrides(sets: tuple[str, ...], epochs: int | None, batch_size: int 
         if value is not None:
             overrides.append(f"{key}={value}")
     return overrides
+
+
+def check_training_inputs(dataset: Path, init_from: Path | None = None) -> None:
+    """What a training command reads, checked before OUT is made or an earlier run is touched: the dataset (missing:
+    exit 3; not format v1 or no train pair: 4) and a checkpoint to start from (missing: 3).
+
+    Raises:
+        BadInputError / DatasetFormatError / EmptySplitError: as above.
+    """
+    from dp5k_common.dataset import DatasetReader
+    from dp5k_common.errors import EmptySplitError
+
+    if not DatasetReader(dataset).ids("train"):
+        raise EmptySplitError("the train split is empty; nothing to train on", where=Path(dataset) / "dataset.json")
+    if init_from is not None and not Path(init_from).is_file():
+        raise BadInputError("checkpoint not found", where=init_from)
 
 
 RUN_FILES = ("last.pt", "best.pt", "history.json")  # what a training run leaves in its folder (epochs.py)

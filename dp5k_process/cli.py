@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import out_option, overwrite_option, refuse_earlier_run, resume_option
+from dp5k_common.cli_conventions import check_out_location, out_option, overwrite_option, refuse_earlier_run, resume_option
 from dp5k_common.errors import BadInputError
 
 from .filters import FilterConfig
@@ -28,8 +28,8 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
 
 @click.command("process")
 @click.argument("raw", type=click.Path(path_type=Path))
-@out_option("The processed dataset (format v1) to write or continue.", legacy_positional=True)
-@click.option("--workers", "-j", type=int, default=1, show_default=True,
+@out_option("The processed dataset (format v1) to write or continue.", legacy_positional=True, resumes=True)
+@click.option("--workers", "-j", type=click.IntRange(min=1), default=1, show_default=True,
               help="Scenes processed in parallel (a process pool). Under torchrun --nproc_per_node N each rank "
                    "processes every N-th scene, with its own pool.")
 @click.option("--size", "size", default=None, help="Output size WxH (default: half the raw size, 1680x1120 on the 5D IV half-size).")
@@ -40,8 +40,8 @@ def _size(text: str | None, what: str) -> tuple[int, int] | None:
 @click.option("--fill-steps", type=click.IntRange(1, 4), default=3, show_default=True,
               help="Steps of Eq. 3 (3 = scales 1, 1/2, 1/4 as in the paper; 4 adds 1/8). A camera too coarse to "
                    "resolve a scale's projector pixels gets one more (coarser) step per such scale, up to 1/8.")
-@click.option("--max-rms", type=float, default=1.0, show_default=True, help="Reject a calibration above this reprojection error (px).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the scene split.")
+@click.option("--max-rms", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True, help="Reject a calibration above this reprojection error (px).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the scene split.")
 @resume_option("Skip the scenes OUT already holds (their checksums verified) and process the rest; --no-resume "
                "refuses an OUT that holds processed scenes.")
 @overwrite_option("Process every scene again, replacing what OUT holds (e.g. after changing --size); the raw "
@@ -124,6 +124,8 @@ def validate_depth_command(capture: Path, out: Path | None, camera: str, intrins
     from .validate import validate_depth
 
     cfg = ProcessConfig(intrinsics=None if intrinsics is None else str(intrinsics))
-    res = validate_depth(capture, out or (Path(capture) / "validate-depth"), cfg, camera=camera)
+    out = out or Path(capture) / "validate-depth"
+    check_out_location(out)  # the derived default too (an explicit --out was checked already)
+    res = validate_depth(capture, out, cfg, camera=camera)
     click.echo(f"relative error (Eq. 4): {100 * res['relative_error']:.3f} % over {res['n_points']} points at "
                f"{res['mean_depth_m']:.3f} m mean depth (paper: 0.59 %, RealSense D415: 2 %)")

@@ -33,6 +33,7 @@ from pathlib import Path
 from dp5k_common.dataset import split_scenes, write_index, write_pair
 from dp5k_common.errors import BadInputError, DP5KError, PartialFailureError
 from dp5k_common.io import read_json, sha256_file, write_json_atomic
+from dp5k_common.software import provenance
 from dp5k_common.progress import progress
 from dp5k_common.sharding import RankInfo, rank_info, shard
 
@@ -148,14 +149,14 @@ def run_scene(session_dir: str, out_dir: str, cfg: ProcessConfig, rank: RankInfo
                          first.depth_mm, first.coc_px))
         contact_sheet(rows, rdir / "contact_sheet.png")
         rep = dict(res.report, status="ok", checksums=checksums, seconds=time.perf_counter() - t0,
-                   rank={"rank": rank.rank, "world_size": rank.world_size})
+                   rank={"rank": rank.rank, "world_size": rank.world_size}, provenance=provenance())
         write_json_atomic(rdir / "report.json", rep)
         return SceneOutcome(scene, "ok", pairs=tuple(checksums))
     except DP5KError as exc:
         for folder in written:  # a failed scene leaves none of its pairs behind
             shutil.rmtree(folder, ignore_errors=True)
         write_json_atomic(rdir / "report.json", {"scene": scene, "status": "failed", "reason": exc.one_line(),
-                                                  "error": type(exc).__name__})
+                                                  "error": type(exc).__name__, "provenance": provenance()})
         return SceneOutcome(scene, "failed", exc.one_line())
 
 
@@ -176,8 +177,8 @@ def process_sessions(raw_root: str | os.PathLike[str], out_root: str | os.PathLi
     """
     info = rank_info() if rank is None else rank
     out = Path(out_root)
+    sessions = find_sessions(Path(raw_root))  # the input first: a missing RAW leaves no empty OUT behind
     out.mkdir(parents=True, exist_ok=True)
-    sessions = find_sessions(Path(raw_root))
     outcomes: list[SceneOutcome] = []
     todo = []
     for sd in shard(sessions, info):  # the owner of a scene depends only on the sorted list and the rank count

@@ -48,6 +48,7 @@ from dp5k_common.io import finite_json, write_bytes_atomic, write_json_atomic, w
 from dp5k_common.outdir import check_out_dir
 from dp5k_common.preview import depth_preview
 from dp5k_common.progress import progress
+from dp5k_common.software import provenance
 
 from .graycode import GrayCodeConfig, n_patterns
 from .pipeline import ProcessConfig, depth_for_camera
@@ -186,7 +187,7 @@ def sl_depth(images: Path, calibration: Path, out: Path, projector: tuple[int, i
     title = "LOW QUALITY" if q["low"] else "camera 0 depth"
     report["preview_range_m"] = list(depth_preview(depth_m, out / "depth_preview.png", title))
     st.save_yaml(out / "calibration.yaml")
-    write_json_atomic(out / "report.json", finite_json(report))
+    write_json_atomic(out / "report.json", finite_json({**report, "provenance": provenance()}))
     write_report_md(out / "report.md", report)
     return report
 
@@ -207,14 +208,14 @@ def _size(text: str) -> tuple[int, int]:
 @out_option("Folder for the depth maps, previews and reports.", legacy_positional=True)
 @click.option("--projector", required=True, help="Projector resolution WxH the Gray code was generated for.")
 @click.option("--units", type=click.Choice(["mm", "m"]), default="mm", show_default=True, help="Units of T in CALIBRATION.")
-@click.option("--full-scale", type=float, default=None,
+@click.option("--full-scale", type=click.FloatRange(min=0, min_open=True), default=None,
               help="The images' full-scale value (default: 255 for 8-bit, 65535 for 16-bit, 1 for float); e.g. "
                    "4095 for 12-bit data in 16-bit files.")
 @click.option("--thresholds", type=click.Choice(["auto", "opencv", "linear"]), default="auto", show_default=True,
               help="Decoder thresholds: opencv (5/255 and 40/255 of full scale, for gamma-encoded images), linear "
                    "(dp5k's linear-raw noise-based thresholds and neighbourhood tests); auto = opencv for 8-bit.")
 @click.option("--fill-steps", type=click.IntRange(1, 4), default=3, show_default=True, help="Steps of Eq. 3 (as dp5k process).")
-@click.option("--min-coverage", type=float, default=MIN_COVERAGE, show_default=True,
+@click.option("--min-coverage", type=click.FloatRange(0, 1), default=MIN_COVERAGE, show_default=True,
               help="Fraction of camera 0's pixels that must get depth; below it the depth is still written, marked "
                    "low quality, and the command exits 9.")
 @click.option("--no-refine", is_flag=True,

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from calib.detect import CharucoDetection, detect_charuco
 from dp5k_common.errors import CalibrationError, StageError
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
+from dp5k_common.software import provenance
 
 from .filters import backproject
 from .graycode import GrayCodeConfig
@@ -114,7 +115,7 @@ def validate_depth(capture: str | os.PathLike[str], out: str | os.PathLike[str],
         "n_points": int(pts.shape[0]), "mean_depth_m": float(pts[:, 2].mean()),
         "mean_ptp_mm": float(np.mean(np.abs(res)) * 1000), "pnp_rms_px": rms, "board_corners": len(det),
         "plane_normal": n.tolist(), "plane_point_m": p0.tolist(), "calibration": cal_info, "depth": dinfo,
-        "reference": {"paper_percent": 0.59, "realsense_d415_percent": 2.0},
+        "reference": {"paper_percent": 0.59, "realsense_d415_percent": 2.0}, "provenance": provenance(),
     }
     write_json_atomic(outp / "report.json", result)
     result["points_m"] = pts

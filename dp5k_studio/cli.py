@@ -26,6 +26,8 @@ def _size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError as exc:
         raise BadInputError(f"--size must look like 288x192, got {text!r}") from exc
+    if w < 16 or h < 16:
+        raise BadInputError(f"--size must be at least 16x16, got {text!r}", where="--size")
     return w, h
 
 
@@ -35,15 +37,16 @@ def studio_group() -> None:
 
 
 @studio_group.command("make-dataset")
-@out_option("The format-v1 dataset to write (refused if it holds one, unless --overwrite).", legacy_positional=True)
-@click.option("--scenes", "n_scenes", type=int, default=3, show_default=True, help="Number of random scenes.")
+@out_option("The format-v1 dataset to write. An interrupted run continues in it (run the same command again); a "
+            "finished dataset is refused unless --overwrite.", legacy_positional=True, resumes=True)
+@click.option("--scenes", "n_scenes", type=click.IntRange(min=1), default=3, show_default=True, help="Number of random scenes.")
 @click.option("--scene", "scene_names", multiple=True, help="Use these presets / seeds instead (repeatable).")
 @click.option("--effect", "effects", multiple=True, help="Plant an effect, NAME=STRENGTH (repeatable; 1.0 = moderate).")
 @click.option("--size", default="288x192", show_default=True, help="Output WxH in px.")
 @click.option("--f-numbers", default="1.8,2,2.8,4,5.6", show_default=True, help="Comma-separated DP f-numbers.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--no-noise", is_flag=True, help="Write noise-free DP views.")
-@overwrite_option("Replace the pairs of a dataset OUT already holds.")
+@overwrite_option("Replace the pairs of a dataset OUT already holds (or start an interrupted one afresh).")
 @click.option("--from", "source", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Re-render the DP views of this format-v1 dataset (any RGBD source) instead of studio scenes.")
 @click.option("--camera", "cameras", type=click.IntRange(0, 1), multiple=True,
@@ -92,7 +95,7 @@ def make_dataset_command(out: Path, n_scenes: int, scene_names: tuple[str, ...],
 @out_option("The PNG to write (replaced if it exists).", legacy_positional=True, file=True)
 @click.option("--scale", default="small", show_default=True, help="Rig scale: small, medium, paper or a factor.")
 @click.option("--camera", type=click.IntRange(0, 1), default=0, show_default=True)
-@click.option("--f-number", type=float, default=1.8, show_default=True)
+@click.option("--f-number", type=click.FloatRange(min=0, min_open=True), default=1.8, show_default=True)
 @click.option("--effect", "effects", multiple=True, help="NAME=STRENGTH (repeatable).")
 def render_command(scene: str, out: Path, scale: str, camera: int, f_number: float, effects: tuple[str, ...]) -> None:
     """Preview SCENE (preset or seed): writes --out OUT as an sRGB PNG strip: sharp | left | right | depth."""

@@ -30,10 +30,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from dp5k_common.dataset import PairParams, split_scenes, write_index, write_pair
+from dp5k_common.dataset import PAIR_FILES, PairParams, split_scenes, write_index, write_pair
 from dp5k_common.errors import BadInputError
 from dp5k_common.optics import coc_diameter_px
 from dp5k_common.progress import progress
+from dp5k_common.run_progress import RunProgress
 from dp5k_common.sensor_noise import NOMINAL_READ_SIGMA, NOMINAL_SHOT_VAR, NoiseModel
 
 from .dp_optics import LensSetting, render_dp
@@ -231,6 +232,45 @@ class RandomCaptures:
         return (x, y), focus, n, pitch, gain
 
 
+PROGRESS_FILE = ".make-dataset-progress.json"
+"""In OUT while a dataset is being written: the options and how far it got (:class:`~dp5k_common.run_progress.RunProgress`);
+a rerun with the same options continues from it, and the finished dataset is the one an uninterrupted run writes."""
+
+
+def _start(out: Path, settings: dict[str, Any], overwrite: bool) -> tuple[RunProgress, dict[str, Any] | None]:
+    """The progress file of a make-dataset run into ``out`` and the state of an interrupted run to continue (None:
+    start afresh).
+
+    Raises:
+        BadInputError: ``out`` holds a finished dataset, an interrupted run with other options, or pairs that no
+            make-dataset run here left (each unless ``overwrite``), or an interrupted run's pair is gone.
+    """
+    prog = RunProgress(out / PROGRESS_FILE, settings)
+    if overwrite:
+        prog.finish()
+        return prog, None
+    if (out / "dataset.json").exists():
+        raise BadInputError("dataset already exists; add --overwrite to replace it, or choose another --out",
+                            where=out / "dataset.json")
+    other = prog.other_settings()
+    if other is not None:
+        raise BadInputError(f"an interrupted make-dataset with other options is here ({prog.differences(other)}); run it "
+                            "again with its options to finish it, add --overwrite to start afresh, or choose another --out",
+                            where=out)
+    state = prog.earlier()
+    if state is None:
+        if (out / "pairs").is_dir() and any((out / "pairs").iterdir()):
+            raise BadInputError("holds pairs but neither a dataset nor an interrupted make-dataset; add --overwrite to "
+                                "replace them, or choose another --out", where=out / "pairs")
+        return prog, None
+    for pids in state["scene_ids"].values():
+        for pid in pids:
+            if not all((out / "pairs" / pid / name).is_file() for name in PAIR_FILES):
+                raise BadInputError("an interrupted make-dataset is here but its pair is gone or incomplete; add "
+                                    "--overwrite to start afresh", where=out / "pairs" / pid)
+    return prog, state
+
+
 def _scene_list(scenes: int | Sequence[str | int], seed: int) -> list[str | int]:
     if isinstance(scenes, (int, np.integer)):
         if scenes < 1:
@@ -256,7 +296,8 @@ def make_dataset(
     """Write a format-v1 dataset of studio scenes with planted effects.
 
     Args:
-        out_dir: dataset folder (created; existing pairs are an error unless ``overwrite``).
+        out_dir: dataset folder (created). A finished dataset there is refused unless ``overwrite``; an interrupted
+            run with the same arguments is continued (its pairs kept, :data:`PROGRESS_FILE`).
         scenes: a number of random scenes (seeds derived from ``seed``) or a list of presets / seeds.
         effects: planted effects (EffectSet, {name: strength} or ["name=strength"]).
         size: output (W, H) in px; the pixel pitch is 36 mm / W.
@@ -281,15 +322,25 @@ def make_dataset(
     if W < 16 or H < 16:
         raise BadInputError(f"image size must be at least 16 x 16, got {W} x {H}")
     out = Path(out_dir)
-    if (out / "dataset.json").exists() and not overwrite:
-        raise BadInputError("dataset already exists (pass overwrite to replace it)", where=out / "dataset.json")
+    items = _scene_list(scenes, seed)
+    settings = {"scenes": items, "effects": eff.to_json((W, H)), "size": [W, H], "f_numbers": [float(n) for n in f_numbers],
+                "cameras": [int(c) for c in cameras], "seed": int(seed), "supersample": int(supersample),
+                "noise": bool(noise), "all_in_focus_sharp": bool(all_in_focus_sharp),
+                "random_captures": asdict(random_captures) if random_captures is not None else None}
+    prog, earlier = _start(out, settings, overwrite)
     rig = make_rig(6720.0 / W)
     rng = np.random.default_rng(seed)
     draws = np.random.default_rng([int(seed), CAPTURE_STREAM])  # apart from the noise: the same captures with or without it
     scene_ids: dict[str, list[str]] = {}
-    items = _scene_list(scenes, seed)
     jobs = [(sc, cam) for sc in items for cam in cameras]
-    for sc, cam_i in progress(jobs, desc="studio pairs", unit="view"):
+    done = 0
+    if earlier is not None:  # continue: the generators where the last finished view left them
+        done, scene_ids = int(earlier["done"]), earlier["scene_ids"]
+        rng.bit_generator.state, draws.bit_generator.state = earlier["rng"], earlier["draws"]
+        overwrite = True  # the view that was interrupted may have written some of its pairs
+    else:
+        prog.save({"done": 0, "scene_ids": {}, "rng": rng.bit_generator.state, "draws": draws.bit_generator.state})
+    for j, (sc, cam_i) in enumerate(progress(jobs[done:], desc="studio pairs", unit="view"), start=done):
         scene = make_scene(sc, rig)
         cam = rig.cameras[cam_i].scaled(W, H)
         geom = view_geometry(scene, cam, None, (), supersample)
@@ -309,6 +360,8 @@ def make_dataset(
                 write_pair(out, params, sharp=rp.sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm,
                            coc_px=rp.coc_px, overwrite=overwrite, sub_mm_depth=True)
                 scene_ids.setdefault(scene.name, []).append(pair_id)
+            prog.save({"done": j + 1, "scene_ids": scene_ids, "rng": rng.bit_generator.state,
+                       "draws": draws.bit_generator.state})
             continue
         Xc = cam.R @ scene.focus_target_m + cam.t
         uv = cam.K @ (Xc / Xc[2])
@@ -332,12 +385,14 @@ def make_dataset(
             write_pair(out, params, sharp=sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm, coc_px=rp.coc_px,
                        overwrite=overwrite, sub_mm_depth=True)
             scene_ids.setdefault(scene.name, []).append(pair_id)
+        prog.save({"done": j + 1, "scene_ids": scene_ids, "rng": rng.bit_generator.state, "draws": draws.bit_generator.state})
     split = split_scenes(list(scene_ids), seed=seed)
     splits = {name: [pid for sc in scs for pid in scene_ids[sc]] for name, scs in split.items()}
     write_index(out, splits, effects=eff.to_json((W, H)),
                 generator={"tool": "dp5k studio make-dataset", "seed": int(seed), "size": [W, H],
                            "f_numbers": [float(n) for n in f_numbers], "scenes": [str(s) for s in items],
                            **({"random_captures": asdict(random_captures)} if random_captures is not None else {})})
+    prog.finish()
     return out
 
 
@@ -366,10 +421,17 @@ def make_dataset_from_rgbd(
     out = Path(out_dir)
     if out.resolve() == Path(source).resolve():
         raise BadInputError("output must differ from the source dataset", where=out)
-    if (out / "dataset.json").exists() and not overwrite:
-        raise BadInputError("dataset already exists (pass overwrite to replace it)", where=out / "dataset.json")
+    settings = {"source": str(Path(source).resolve()), "effects": eff.to_json(), "seed": int(seed), "noise": bool(noise)}
+    prog, earlier = _start(out, settings, overwrite)
     rng = np.random.default_rng(seed)
-    for pid in progress(src.ids(), desc="re-render pairs", unit="pair"):
+    ids, done = src.ids(), 0
+    if earlier is not None:
+        done = int(earlier["done"])
+        rng.bit_generator.state = earlier["rng"]
+        overwrite = True
+    else:
+        prog.save({"done": 0, "scene_ids": {}, "rng": rng.bit_generator.state})
+    for j, pid in enumerate(progress(ids[done:], desc="re-render pairs", unit="pair"), start=done):
         pair = src.load(pid)
         pp = pair.params
         rp = pair_from_rgbd(pair.sharp, np.where(pair.valid, pair.depth_mm, 0.0), f_number=pp.f_number,
@@ -381,6 +443,8 @@ def make_dataset_from_rgbd(
                             {**extra, **rp.extra, "source": "rgbd", "source_dataset": str(Path(source).name)})
         write_pair(out, params, sharp=pair.sharp, left=rp.left, right=rp.right, depth_mm=rp.depth_mm,
                    coc_px=rp.coc_px, overwrite=overwrite, sub_mm_depth=True)
+        prog.save({"done": j + 1, "scene_ids": {"": ids[:j + 1]}, "rng": rng.bit_generator.state})
     write_index(out, {name: src.ids(name) for name in src.splits}, effects=eff.to_json(),
                 generator={"tool": "dp5k studio make-dataset --from", "seed": int(seed), "source": str(source)})
+    prog.finish()
     return out

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from dp5k_common.cli_conventions import device_option, out_option
+from dp5k_common.cli_conventions import check_out_location, device_option, out_option
 from dp5k_common.deprecation import warn_deprecated
 from dp5k_common.errors import BadInputError
-from dp5k_learn.cli_options import config_overrides, prepare_run_dir, report_run, training_options
+from dp5k_learn.cli_options import check_training_inputs, config_overrides, prepare_run_dir, report_run, training_options
 
 from .config import load_config
 from .simulators.catalog import PEERS, SYNTAX, SimulatorSpec, spec_texts
@@ -26,7 +26,8 @@ def default_run_dir(dataset: Path) -> Path:
 
 @click.command("train")
 @click.argument("dataset", type=click.Path(path_type=Path))
-@out_option("Run folder (checkpoints, config, history).", required=False, default_text="DATASET-neural_dp beside the dataset")
+@out_option("Run folder (checkpoints, config, history).", required=False, default_text="DATASET-neural_dp beside the dataset",
+            resumes=True)
 @training_options("neural_dp/config.py")
 def train_command(dataset: Path, out: Path | None, config_file: Path | None, epochs: int | None,
                   batch_size: int | None, lr: float | None, crop_size: int | None, device: str | None, seed: int | None,
@@ -39,7 +40,9 @@ def train_command(dataset: Path, out: Path | None, config_file: Path | None, epo
     from .train import train
 
     cfg = load_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop_size, device, seed))
+    check_training_inputs(dataset)
     run_dir = out or default_run_dir(dataset)
+    check_out_location(run_dir)  # the derived default too (an explicit --out was checked already)
     result = train(dataset, run_dir, cfg, resume=prepare_run_dir(run_dir, resume, overwrite))
     click.echo(report_run(run_dir, result))
 
@@ -74,8 +77,9 @@ def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str
 @click.command("evaluate")
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--split", default="test", show_default=True, help="Split to evaluate.")
-@out_option("Output folder (metrics.json, table.md, figures/), replaced on each run.", required=False,
-            default_text="DATASET-eval-SPLIT beside the dataset")
+@out_option("Output folder (metrics.json, table.md, figures/). An interrupted run continues in it (the same command "
+            "again); a finished one is replaced.", required=False, default_text="DATASET-eval-SPLIT beside the dataset",
+            resumes=True)
 @click.option("--simulator", "simulators", multiple=True, metavar="SPEC",
               help=f"A simulator to compare, repeatable: {SYNTAX}. Default: every one available: disk, butterworth, "
                    "raytrace, base, and neural when DATASET-neural_dp/best.pt exists (what dp5k train wrote; a bare "
@@ -83,18 +87,22 @@ def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str
 @click.option("--simulators", "legacy_names", default=None, metavar="A,B", help="Deprecated: --simulator A --simulator B.")
 @click.option("--checkpoint", type=click.Path(path_type=Path), default=None, help="Deprecated: --simulator neural:CKPT.")
 @device_option()
-@click.option("--max-pairs", type=int, default=0, help="Evaluate at most this many pairs (0 = all).")
-@click.option("--figures", type=int, default=2, show_default=True, help="Pairs that get a comparison picture.")
+@click.option("--max-pairs", type=click.IntRange(min=0), default=0, help="Evaluate at most this many pairs (0 = all).")
+@click.option("--figures", type=click.IntRange(min=0), default=2, show_default=True, help="Pairs that get a comparison picture.")
 @click.option("--fit-pairs", type=click.IntRange(min=1), default=8, show_default=True,
               help="Training pairs (one crop of at most 256 px each) that simulators with free parameters (base) are "
                    "fitted on before they are compared.")
 def evaluate_command(dataset: Path, split: str, out: Path | None, simulators: tuple[str, ...], legacy_names: str | None,
                      checkpoint: Path | None, device: str, max_pairs: int, figures: int, fit_pairs: int) -> None:
     """Table 2: masked MAE / PSNR / SSIM of every simulator on the same pairs of DATASET."""
+    from dp5k_common.dataset import DatasetReader
+
     from .evaluate import evaluate
 
-    specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
+    DatasetReader(dataset).ids(split)  # the input first (missing: exit 3), before the simulators are looked for
     out = out or dataset.resolve().parent / f"{dataset.resolve().name}-eval-{split}"
+    check_out_location(out)  # the derived default too (an explicit --out was checked already)
+    specs = evaluate_specs(dataset, simulators, legacy_names, checkpoint)
     result = evaluate(dataset, out, split=split, simulators=specs, device=device, max_pairs=max_pairs, figures=figures,
                       fit_pairs=fit_pairs)
     click.echo(result.table_md.rstrip())
@@ -103,25 +111,25 @@ def evaluate_command(dataset: Path, split: str, out: Path | None, simulators: tu
 
 @click.command("synthesize")
 @click.argument("in_dir", type=click.Path(path_type=Path))
-@out_option("The DP dataset (format v1) to write or continue.", legacy_positional=True)
+@out_option("The DP dataset (format v1) to write or continue.", legacy_positional=True, resumes=True)
 @click.option("--simulator", metavar="SPEC", default=None, help=f"The simulator (required): {SYNTAX}.")
 @click.option("--checkpoint", type=click.Path(path_type=Path), default=None, help="Deprecated: --simulator neural:CKPT.")
-@click.option("--f-number", "f_numbers", type=float, multiple=True,
+@click.option("--f-number", "f_numbers", type=click.FloatRange(min=0, min_open=True), multiple=True,
               help="Fixed f-number; repeat to draw one per frame (default: 1.8, 2, 2.8, 4, 5.6).")
-@click.option("--focus-mm", type=float, default=None, help="Fixed focus distance (default: random 60x40 window).")
-@click.option("--max-coc-px", type=float, default=20.0, show_default=True,
+@click.option("--focus-mm", type=click.FloatRange(min=0, min_open=True), default=None, help="Fixed focus distance (default: random 60x40 window).")
+@click.option("--max-coc-px", type=click.FloatRange(min=0, min_open=True), default=20.0, show_default=True,
               help="Sensor-size adjustment target: 99th-percentile |CoC| at f/1.8, px.")
 @click.option("--no-sensor-adjust", is_flag=True, help="Keep the nominal 36 mm sensor (no 5.3.1 adjustment).")
-@click.option("--sensor-width-mm", type=float, default=36.0, show_default=True)
+@click.option("--sensor-width-mm", type=click.FloatRange(min=0, min_open=True), default=36.0, show_default=True)
 @click.option("--encoding", type=click.Choice(["srgb", "linear"]), default="srgb", show_default=True,
               help="How image.png is encoded.")
-@click.option("--depth-scale", type=float, default=1.0, show_default=True, help="depth.npy values x this = mm.")
+@click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True, help="depth.npy values x this = mm.")
 @click.option("--noise", "noise", metavar="SPEC", default="nominal", show_default=True,
               help="Sensor noise on the views (shot + read per channel, linear): nominal (variance 2e-5 I + (1e-3)^2), "
                    "none, measured:DATASET (measured from a dataset's views), diagnosed:REPORT.json, or "
                    "shot=S,read=R (per channel S:S:S). Drawn from --seed.")
-@click.option("--batch-size", type=int, default=4, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--batch-size", type=click.IntRange(min=1), default=4, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @device_option()
 def synthesize_command(in_dir: Path, out: Path, simulator: str | None, checkpoint: Path | None,
                        f_numbers: tuple[float, ...], focus_mm: float | None, max_coc_px: float, no_sensor_adjust: bool,

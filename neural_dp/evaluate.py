@@ -11,6 +11,10 @@ writes into ``out_dir``:
 
 Simulators with free parameters (the physical base model) are first fitted on training pairs
 (``DPSimulator.fit``); the peers keep their published defaults.
+
+An interrupted run resumes: after each pair its numbers go to ``OUT/.evaluate-progress.json``; a run with the same
+settings into the same OUT fits again (deterministic), keeps those pairs and scores the rest (when the fit differs it
+starts over). A finished run is replaced.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from dp5k_common.dataset import DatasetReader
 from dp5k_common.errors import BadInputError, EmptySplitError
 from dp5k_common.io import atomic_path, write_json_atomic
 from dp5k_common.progress import progress
+from dp5k_common.run_progress import RunProgress, canonical
+from dp5k_common.software import provenance
 from dp5k_learn.batch import DPBatch
 from dp5k_learn.data import CropSpec, DPPairDataset, collate_dp
 from dp5k_learn.distributed import resolve_device
@@ -41,6 +47,8 @@ from .simulators.interface import DPSimulator
 
 logger = logging.getLogger(__name__)
 
+PROGRESS_FILE = ".evaluate-progress.json"
+"""In OUT while an evaluation runs: its settings and every scored pair's numbers (what a rerun continues from)."""
 TITLES = {"disk": "Translating disk", "butterworth": "Butterworth", "raytrace": "Ray tracing",
           "base": "Physical base", "neural": "Neural DP", "diagnosed": "Diagnosed"}
 
@@ -185,12 +193,25 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
     index = {pid: i for i, pid in enumerate(ds.ids)}
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
     seconds = {n: 0.0 for n in names}
-    out.mkdir(parents=True, exist_ok=True)
     no_depth: list[str] = []
-    for k, pid in enumerate(progress(ids, desc=f"evaluate {split}", unit="pair")):
+    prog = RunProgress(out / PROGRESS_FILE, {"dataset": str(root.resolve()), "split": split, "pairs": ids,
+                                             "specs": [str(spec) for spec in specs], "columns": names,
+                                             "fit_pairs": fit_pairs, "fit_crop_px": fit_crop_px, "device": str(dev)})
+    earlier = prog.earlier()
+    if earlier is not None:
+        if earlier.get("fitted") == canonical(fitted):
+            per_pair, no_depth, seconds = earlier["per_pair"], earlier["no_depth"], earlier["seconds"]
+            logger.info("%s: resuming an interrupted evaluation, %d of %d pairs done", out, len(per_pair) + len(no_depth),
+                        len(ids))
+        else:
+            logger.warning("%s: the fit differs from the interrupted evaluation's; scoring every pair again", out)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = [(k, pid) for k, pid in enumerate(ids) if pid not in per_pair and pid not in no_depth]
+    for k, pid in progress(todo, desc=f"evaluate {split}", unit="pair"):
         batch = collate_dp([ds[index[pid]]]).to(dev)
         if not bool(batch.valid.any()):  # e.g. a DPDD import: the simulators render from depth, metrics mask by it
             no_depth.append(pid)
+            prog.save({"fitted": fitted, "per_pair": per_pair, "no_depth": no_depth, "seconds": seconds})
             continue
         views: dict[str, tuple[Tensor, Tensor]] = {}
         per_pair[pid] = {}
@@ -205,6 +226,7 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
             views[name] = (left, right)
         if k < figures:
             save_figure(out / "figures" / f"{pid}.png", batch, views)
+        prog.save({"fitted": fitted, "per_pair": per_pair, "no_depth": no_depth, "seconds": seconds})
     scored = [p for p in ids if p in per_pair]
     if not scored:
         raise BadInputError(f"no pair of split '{split}' has valid depth (a DPDD import has none): the simulators render "
@@ -224,9 +246,11 @@ def evaluate(dataset: str | os.PathLike[str], out_dir: str | os.PathLike[str], *
         "checkpoint": next((str(spec.checkpoint) for spec in specs if spec.is_neural), None), "device": str(dev),
         "metric_definitions": "masked MAE/PSNR/SSIM (dp5k_learn.metrics), mean of left and right view, mean over pairs",
         "fitted_parameters": fitted, "fit_pairs": len(fit_batches or []), "means": means, "per_pair": per_pair,
+        "provenance": provenance(),
     }
     write_json_atomic(out / "metrics.json", report)
     with atomic_path(out / "table.md") as tmp:
         tmp.write_text(f"Split '{split}' of {root.name}, {len(scored)} pairs"
                        + (f" ({len(no_depth)} without valid depth left out)" if no_depth else "") + ".\n\n" + table)
+    prog.finish()
     return EvalResult(means, out, table)

@@ -39,32 +39,52 @@ design and numbers are in its own page: [capture](capture.md), [studio](studio.m
   - `--overwrite`: start afresh, replacing the earlier run's results (`process`, `sl-depth`, `studio
     make-dataset`, `train`, `deblur train`, `demo`; `demo --force` is its deprecated spelling). Raw captures and
     imports are never overwritten: `capture` and `import` have no `--overwrite`.
-  - Reports computed from their inputs (`evaluate`, `diagnose`, `validate-depth`, `deblur evaluate`, `studio
-    render`) are replaced on each run.
+  - `studio make-dataset` continues an interrupted run when run again with the same options (a finished dataset
+    is refused without `--overwrite`); `evaluate` continues an interrupted run with the same settings.
+  - Reports computed from their inputs (`evaluate` once finished, `diagnose`, `validate-depth`, `deblur
+    evaluate`, `studio render`) are replaced on each run.
 - **Deprecated spellings** still work for this release and print one line, `OLD is deprecated; use NEW`, on
   stderr after the command's output; when the command fails, the note ends its one error line instead.
 - A processed dataset is validated by `dp5k check DATASET`; `dp5k verify` is for raw capture sessions and,
   given a dataset, says so and runs the same check.
 
+## The contract (every command)
+
+`tests/test_cli_contract.py` checks it over the whole command tree, so a new command is held to it the day it lands.
+
+- **OUT is checked before any work.** An `--out` that is a file (where a folder goes), lies under a file, or
+  cannot be written is refused in one line, exit 3, and nothing is created.
+- **Inputs are checked before OUT is made.** A missing input file or folder is exit 3 in every command; an
+  existing folder that is not a format-v1 dataset (or lacks the split a command needs) is exit 4. OUT is created
+  only once the inputs passed.
+- **An earlier result in OUT** is continued (the commands that resume), refused without `--overwrite` (exit 3),
+  or, for a report computed from its inputs, replaced; never mixed.
+- **Numbers carry their ranges.** A count, size, seed or f-number outside its range (`train --epochs 0`,
+  `evaluate --max-pairs -3`, `--batch-size 0`) is a usage error, exit 2; a `WxH` size below its minimum
+  (`studio make-dataset --size 0x0`, `import --tile 0x0`) is bad input, exit 3.
+- **Interrupted** (Ctrl-C, exit 130): finished work is kept. The commands that resume say "run the command again
+  to resume": {resuming}. The others say they start over when run again.
+- **`-v` / `-q` go before or after the command**: `dp5k -q train DS` and `dp5k train DS -q` are the same.
+
 ## Global options and exit codes
 
-`dp5k [-v|-vv] [-q] COMMAND ...` — `-v` more logging and tracebacks on errors, `-q` only warnings and no
-progress bars (`DP5K_PROGRESS=0` also hides them). Errors print one line,
+`dp5k [-v|-vv] [-q] COMMAND ...` (or after the command) — `-v` more logging and tracebacks on errors, `-q` only
+warnings and no progress bars (`DP5K_PROGRESS=0` also hides them). Errors print one line,
 `dp5k: error: <file/device/stage>: <problem>`, and exit with:
 
 | code | meaning |
 |---|---|
 | 0 | success |
 | 1 | other dp5k failure |
-| 2 | usage error (bad option; click's own) |
-| 3 | bad input: a file, folder or argument is missing or malformed |
-| 4 | dataset not in format v1 |
+| 2 | usage error (bad option, a number outside its range; click's own) |
+| 3 | bad input: a file, folder or argument is missing or malformed; an unusable `--out` |
+| 4 | an existing dataset not in format v1 (or without the split the command needs) |
 | 5 | device fault, timeout or protocol error |
 | 6 | calibration failed or exceeded its bound |
 | 7 | a pipeline stage failed |
 | 8 | some items failed, the others completed (see the report) |
 | 9 | the result was written but is below its quality bound, marked so in its report (`sl-depth`: low coverage, a calibration the refinement could not fix) |
-| 130 | interrupted; finished work kept, rerun to resume |
+| 130 | interrupted; finished work kept; the commands that resume continue when run again |
 """
 
 
@@ -72,17 +92,21 @@ def render() -> str:
     sys.path.insert(0, str(ROOT))
     from dp5k_cli import COMMANDS, main
 
+    from dp5k_common.cli_conventions import command_resumes
+
     runner = CliRunner()
-    parts = [HEAD]
     ctx = click.Context(main)
+    tree: list[tuple[list[str], click.Command]] = []
     for name in sorted(COMMANDS):
         cmd = main.get_command(ctx, name)
-        paths = [[name]]
+        tree.append(([name], cmd))
         if isinstance(cmd, click.Group):
-            paths += [[name, sub] for sub in sorted(cmd.list_commands(ctx))]
-        for path in paths:
-            out = runner.invoke(main, [*path, "--help"], terminal_width=100).output
-            parts.append(f"\n## `dp5k {' '.join(path)}`\n\n```text\n{out.rstrip()}\n```\n")
+            tree += [([name, sub], cmd.get_command(ctx, sub)) for sub in sorted(cmd.list_commands(ctx))]
+    resuming = ", ".join(f"`{' '.join(path)}`" for path, cmd in tree if command_resumes(cmd))
+    parts = [HEAD.replace("{resuming}", resuming)]
+    for path, _ in tree:
+        out = runner.invoke(main, [*path, "--help"], prog_name="dp5k", terminal_width=100).output
+        parts.append(f"\n## `dp5k {' '.join(path)}`\n\n```text\n{out.rstrip()}\n```\n")
     return "".join(parts)
 
 

@@ -17,16 +17,35 @@ def test_help_lists_commands() -> None:
 
 
 def test_bad_path_gives_one_line_and_exit_code(tmp_path: Path) -> None:
+    """A missing folder is bad input (3); an existing folder that is not a dataset is not format v1 (4)."""
     result = CliRunner().invoke(main, ["check", str(tmp_path / "missing")])
-    assert result.exit_code == 4
+    assert result.exit_code == 3
     lines = [l for l in result.output.splitlines() if l.strip()]
     assert len(lines) == 1 and lines[0].startswith("dp5k: error:") and "missing" in lines[0]
     assert "Traceback" not in result.output
+    result = CliRunner().invoke(main, ["check", str(tmp_path)])
+    assert result.exit_code == 4 and "missing dataset.json" in result.output
 
 
 def test_verbose_adds_traceback(tmp_path: Path) -> None:
     result = CliRunner().invoke(main, ["-v", "check", str(tmp_path / "missing")])
-    assert result.exit_code == 4 and "Traceback" in result.output
+    assert result.exit_code == 3 and "Traceback" in result.output
+
+
+def test_verbose_and_quiet_work_after_the_command_too(tmp_path: Path) -> None:
+    """-v after the subcommand (and after a group's subcommand) adds the traceback as -v before it does; -q after it
+    silences the info log."""
+    import logging
+
+    result = CliRunner().invoke(main, ["check", str(tmp_path / "missing"), "-v"])
+    assert result.exit_code == 3 and "Traceback" in result.output
+    result = CliRunner().invoke(main, ["studio", "make-dataset", "--out", str(tmp_path / "x"), "--size", "0x0", "-v"])
+    assert result.exit_code == 3 and "Traceback" in result.output
+    result = CliRunner().invoke(main, ["check", str(tmp_path / "missing"), "-q"])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert logging.getLogger().level == logging.WARNING
+    CliRunner().invoke(main, ["check", str(tmp_path / "missing"), "-vv"])
+    assert logging.getLogger().level == logging.DEBUG
 
 
 def test_check_valid_dataset_summarises(tmp_path: Path) -> None:

@@ -178,6 +178,61 @@ class FlatOptics:
         return [*written, folder / "truth.json"]
 
 
+def focus_point(studio: Any, srig: Any, camera: int) -> tuple[int, int, int]:
+    """Where body ``camera`` of ``srig`` focuses in ``studio``: on the scene's focus target, as an operator places the AF point.
+
+    The target's surface is the primitive whose surface the ray to the target meets at the target's depth
+    (within 2 %). The AF point must lie where the structured light can measure the focus distance (Eq. 5
+    averages depth over DP5K's 30 x 20 window at the 1680-wide output, here scaled to this raw size): the
+    window, plus a 2 px margin (processing loses a 1-3 px rim at depth edges), all on the target's surface
+    and lit by the rig's projector. The target projected into the view is kept when it qualifies;
+    otherwise (the target hidden by something nearer, in a nearer object's projector shadow, or only a
+    sliver of it showing at an occluding edge) the point moves to the nearest pixel that does, else on
+    any surface at the target's depth (the same focus distance), then to the nearest pixel whose window
+    is at least half lit target (or lit at its depth), then the nearest lit pixel of either, last the
+    nearest pixel at that depth. Both bodies thus focus on the same surface, or at the same distance.
+
+    Returns:
+        ``(x, y, choice)``: the pixel and which rule gave it: 0 the target itself, 1 .. 7 the fallbacks in the
+        order above, 8 none (the projected target).
+    """
+    from dp5k_studio.geometry import cast
+
+    x, y = (int(v) for v in studio.focus_point_px(camera))
+    cam = srig.cameras[camera]
+    target = np.asarray(studio.scene.focus_target_m, dtype=np.float64)
+    z_target = float((cam.R @ target + cam.t)[2])
+    geo = studio.geometry(camera)
+    depth = np.asarray(geo.depth_m, dtype=np.float64)
+    d = target - cam.center_m
+    d = (d / np.linalg.norm(d))[None]
+    zc = float((cam.R @ d[0])[2])
+    prims = list(studio.scene.prims)
+    z_hit = np.array([float(cast([p], cam.center_m, d)[0][0]) * zc for p in prims])
+    k = int(np.argmin(np.abs(z_hit - z_target)))
+    surface = (geo.prim == k) if abs(z_hit[k] - z_target) <= 0.02 * z_target else np.zeros(depth.shape, bool)
+    lit = np.isfinite(np.asarray(geo.proj_xy)[..., 0])
+    with np.errstate(invalid="ignore"):
+        at_depth = np.abs(depth - z_target) <= 0.02 * z_target
+    win = tuple(2 * max(3, int(round(n * cam.width / 2 / 1680))) for n in (30, 20))  # raw px (half-size output)
+    on = [surface & lit, at_depth & lit]
+
+    def inside(m: NDArray[np.bool_], size: tuple[int, int], frac: float) -> NDArray[np.bool_]:
+        return m & (cv2.boxFilter(m.astype(np.float32), -1, size, borderType=cv2.BORDER_CONSTANT) >= frac)
+
+    margin = (win[0] + 4, win[1] + 4)  # clear of the surface's edges by 2 px (depth edges lose a rim)
+    clear = [inside(m, margin, 0.999) for m in on]
+    good = [inside(m, win, 0.5) for m in on]
+    if clear[0][y, x]:
+        return x, y, 0
+    for choice, cand in enumerate((clear[0], clear[1], good[0], good[1], on[0], on[1], at_depth), start=1):
+        ys, xs = np.nonzero(cand)
+        if xs.size:
+            j = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
+            return int(xs[j]), int(ys[j]), choice
+    return x, y, 8
+
+
 class StudioOptics:
     """The virtual studio as the bodies' world (``dp5k_studio``).
 
@@ -230,52 +285,8 @@ class StudioOptics:
         self.focus_m: dict[int, float] = {}
 
     def _focus_point_px(self, camera: int) -> tuple[int, int]:
-        """Where body ``camera`` focuses: on the scene's focus target, as an operator places the AF point.
-
-        The target's surface is the primitive whose surface the ray to the target meets at the target's depth
-        (within 2 %). The AF point must lie where the structured light can measure the focus distance (Eq. 5
-        averages depth over DP5K's 30 x 20 window at the 1680-wide output, here scaled to this raw size): the
-        window, plus a 2 px margin (processing loses a 1-3 px rim at depth edges), all on the target's surface
-        and lit by the rig's projector. The target projected into the view is kept when it qualifies;
-        otherwise (the target hidden by something nearer, in a nearer object's projector shadow, or only a
-        sliver of it showing at an occluding edge) the point moves to the nearest pixel that does, else on
-        any surface at the target's depth (the same focus distance), then to the nearest pixel whose window
-        is at least half lit target (or lit at its depth), then the nearest lit pixel of either, last the
-        nearest pixel at that depth. Both bodies thus focus on the same surface, or at the same distance."""
-        from dp5k_studio.geometry import cast
-
-        x, y = (int(v) for v in self.studio.focus_point_px(camera))
-        cam = self.srig.cameras[camera]
-        target = np.asarray(self.studio.scene.focus_target_m, dtype=np.float64)
-        z_target = float((cam.R @ target + cam.t)[2])
-        geo = self.studio.geometry(camera)
-        depth = np.asarray(geo.depth_m, dtype=np.float64)
-        d = target - cam.center_m
-        d = (d / np.linalg.norm(d))[None]
-        zc = float((cam.R @ d[0])[2])
-        prims = list(self.studio.scene.prims)
-        z_hit = np.array([float(cast([p], cam.center_m, d)[0][0]) * zc for p in prims])
-        k = int(np.argmin(np.abs(z_hit - z_target)))
-        surface = (geo.prim == k) if abs(z_hit[k] - z_target) <= 0.02 * z_target else np.zeros(depth.shape, bool)
-        lit = np.isfinite(np.asarray(geo.proj_xy)[..., 0])
-        with np.errstate(invalid="ignore"):
-            at_depth = np.abs(depth - z_target) <= 0.02 * z_target
-        win = tuple(2 * max(3, int(round(n * cam.width / 2 / 1680))) for n in (30, 20))  # raw px (half-size output)
-        on = [surface & lit, at_depth & lit]
-
-        def inside(m: NDArray[np.bool_], size: tuple[int, int], frac: float) -> NDArray[np.bool_]:
-            return m & (cv2.boxFilter(m.astype(np.float32), -1, size, borderType=cv2.BORDER_CONSTANT) >= frac)
-
-        margin = (win[0] + 4, win[1] + 4)  # clear of the surface's edges by 2 px (depth edges lose a rim)
-        clear = [inside(m, margin, 0.999) for m in on]
-        good = [inside(m, win, 0.5) for m in on]
-        if clear[0][y, x]:
-            return x, y
-        for cand in (clear[0], clear[1], good[0], good[1], on[0], on[1], at_depth):
-            ys, xs = np.nonzero(cand)
-            if xs.size:
-                j = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
-                return int(xs[j]), int(ys[j])
+        """Where body ``camera`` focuses: :func:`focus_point` in this world's scene."""
+        x, y, _ = focus_point(self.studio, self.srig, camera)
         return x, y
 
     def _index(self, serial: str) -> int:
@@ -425,13 +436,49 @@ class SimRig:
         self.projector.stop()
 
 
+CALIBRATABLE_FOCUS_M = (1.2, 4.5)
+"""Focus distances (m) at which a named random ``--sim`` scene is captured. The ChArUco shots are taken at the
+scene's focus (f/22) with the board held 2.0-2.3 m away (:meth:`StudioOptics.board_pose`); focused much nearer,
+the board's markers blur past detection (a body focused at 0.31 m or 0.83 m: 'only 0 (2) of 3 ChArUco pairs
+share >= 12 corners'), and processing cannot calibrate."""
+
+
+def calibratable(scene: str | int) -> bool:
+    """Whether the studio scene ``scene`` (a preset or a seed) can be captured and processed on the rig: both bodies find their AF
+    point (:func:`focus_point`) on a lit window of the target or at its depth (not a last-resort fallback, whose
+    window the structured light cannot measure: 'the focus window has no valid depth'), focus at the same
+    distance (within 5 %), and that distance lies in :data:`CALIBRATABLE_FOCUS_M`. Judged on the small rig of seed
+    0, so a name means the same scene at every scale."""
+    from dp5k_studio import Studio, make_rig, make_scene
+
+    rig = make_rig("small")
+    studio = Studio(make_scene(scene, rig), rig)
+    focus = []
+    for camera in range(2):
+        x, y, choice = focus_point(studio, rig, camera)
+        if choice > 4:
+            return False
+        focus.append(float(studio.focus_distance_m(camera, (x, y))))
+    lo, hi = CALIBRATABLE_FOCUS_M
+    return all(lo <= f <= hi for f in focus) and abs(focus[0] - focus[1]) <= 0.05 * max(focus)
+
+
 def sim_studio_scene(scene: str) -> str | int:
-    """The studio scene for a ``--sim`` capture: a preset of the same name, else a seed from the name."""
+    """The studio scene for a ``--sim`` capture: a preset of the same name (``dp5k_studio.PRESETS``), a seed given as
+    digits or ``rand<seed>``; any other name seeds a random scene the rig can calibrate in: the first of the seeds
+    ``crc32(name) % 100000``, + 1, + 2, ... that is :func:`calibratable` (the same name, the same scene).
+
+    >>> sim_studio_scene("demo01"), sim_studio_scene("17"), sim_studio_scene("rand3")
+    ('demo01', '17', 'rand3')
+    """
     from dp5k_studio import PRESETS
 
     if scene in PRESETS or scene.isdigit() or (scene.startswith("rand") and scene[4:].isdigit()):
         return scene
-    return zlib.crc32(scene.encode()) % 100000
+    seed = zlib.crc32(scene.encode()) % 100000
+    while not calibratable(seed):
+        seed = (seed + 1) % 100000
+    return seed
 
 
 def write_ground_truth_once(optics: Any, session_dir: Path, file_mode: int | None = None) -> Path:

@@ -17,7 +17,7 @@ from .plant import make_planted_dataset
 def test_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     runner = CliRunner()
     res = runner.invoke(main, ["diagnose", str(tmp_path / "nothing")])
-    assert res.exit_code == 4 and "dataset folder not found" in res.output
+    assert res.exit_code == 3 and "dataset folder not found" in res.output  # missing input: 3, like every command
     res = runner.invoke(main, ["diagnose", str(tmp_path), "--simulator", "nonsense"])
     assert res.exit_code == 3 and "unknown simulator 'nonsense'" in res.output
     res = runner.invoke(main, ["diagnose", str(tmp_path), "--model", "nonsense"])  # the older flag still parses the spec
