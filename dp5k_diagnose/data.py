@@ -215,7 +215,7 @@ def cat_batches(batches: Sequence[DPBatch]) -> DPBatch:
 SMALL_TRAIN_PAIRS = 8
 """A train split of at most this many pairs is fitted whole by ``--fit-pairs auto``; a larger one fits
 :data:`DEFAULT_FIT_PAIRS` of its pairs (the atlas always reads every pair)."""
-DEFAULT_FIT_PAIRS = 12
+DEFAULT_FIT_PAIRS = 8
 """Fit pairs of ``--fit-pairs auto`` on a larger train split."""
 
 

@@ -58,6 +58,9 @@ def noise_signature(noise: NoiseMeasure, cfg: DiagnoseConfig) -> Signature:
     """The views' white-noise variance over the nominal sensor's, minus 1 (its minimum: ``noise_min_ratio`` - 1)."""
     if not noise.measured:
         return Signature("noise", unmeasured=noise.note)
+    if noise.variance_ratio < 1.0:  # only noise beyond the nominal sensor's is an effect: less is a quieter sensor
+        return Signature("noise", [Value("variance_ratio_minus_1", "1", 0.0, np.zeros(max(noise.ratio_boot.size, 10)),
+                                         cfg.noise_min_ratio - 1.0, noise.variance_ratio, 1.0)])
     return Signature("noise", [Value("variance_ratio_minus_1", "1", noise.variance_ratio - 1.0, noise.ratio_boot - 1.0,
                                      cfg.noise_min_ratio - 1.0, noise.variance_ratio, 1.0)])
 
@@ -83,8 +86,8 @@ class Measurement:
     def of(cls, samples: Sequence[Sample], base: BaseModel, cfg: DiagnoseConfig) -> "Measurement":
         samples = list(samples)
         measurer = AtlasMeasurer(pair_images(samples), cfg.n_boot, cfg.seed)
-        measurer.measure("measured", measured_views(samples))
         noise = measure_noise(base, samples, cfg)
+        measurer.measure("measured", measured_views(samples), (noise.shot_var, noise.read_sigma) if noise.measured else None)
         return cls(samples, measurer, noise, colour_contrast(samples) > GREY_MAX_COLOUR_CONTRAST, cfg)
 
     @property
@@ -94,7 +97,7 @@ class Measurement:
     def simulator(self, render: Render, name: str = "model") -> Atlas:
         """Measure ``render``'s atlas on the same pairs (with the views' noise), as view-set ``name``."""
         noise = (self.noise.shot_var, self.noise.read_sigma) if self.noise.measured else None
-        self.measurer.measure(name, rendered_views(render, self.samples, noise, self.cfg.seed))
+        self.measurer.measure(name, rendered_views(render, self.samples, noise, self.cfg.seed), noise)
         return self.atlas
 
     def signatures(self, model: str = "model") -> dict[str, Signature]:

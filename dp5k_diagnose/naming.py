@@ -5,11 +5,12 @@ The measurement decides, the fit confirms (docs/diagnose.md, "Naming"):
 1. Every effect's signature is read off the measured and the simulator's atlases (:mod:`.signatures`). An effect
    whose signature differs beyond its interval and its minimum is a *candidate*; one whose signature could not
    be measured is never named.
-2. The strongest candidate (its largest value over its minimum) is added to the model, its parameters started
-   from its signature where the signature says them directly, and the model is refitted on the fit crops.
-3. It is named when the extended model predicts the held-out pairs better: the PSNR gain's 95 % interval (tiles
-   resampled within each held-out pair) lies above 0. Otherwise it becomes a *suspect*: its signature differs,
-   but the component that stands for it does not predict better.
+2. Each candidate is added to the model alone, its parameters started from its signature where the signature says
+   them directly, and the model is refitted on the fit crops.
+3. Of the candidates whose extended model predicts the held-out pairs better (the PSNR gain's 95 % interval, tiles
+   resampled within each held-out pair, above 0, and the gain at least :data:`MIN_GAIN_DB`), the one that gains most
+   is named. A candidate that never does (in :data:`MAX_TRIES` rounds) is a *suspect*: its signature differs, but
+   the component that stands for it does not predict better.
 4. The extended model is rendered again on every pair, its atlas re-measured (the measured side is not measured
    again) and every signature read anew: a cause's side effects (the blur of a resampled shift, the brightness
    of a moved split) leave the other signatures with it. Back to 2 until no candidate is left.
@@ -224,44 +225,71 @@ Remeasure = Callable[[BaseModel], dict[str, Signature]]
 """Renders a model on every pair, re-measures its atlas and returns every effect's signature against it."""
 
 
+MAX_TRIES = 2
+"""An effect whose signature differs is fitted in at most this many rounds before it is left a suspect (a cause can
+mask another until it is in the model, so one failure is not final)."""
+
+
+@dataclass
+class _Trial:
+    sig: Signature
+    model: BaseModel
+    gain: dict[str, Any]
+    seconds: float
+
+
 def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasure, fit: Sequence[Sample], held: HeldOut,
                 cfg: DiagnoseConfig, progress: Callable[[str], None] = lambda s: None) -> Naming:
-    """Steps 2-5 of the module docstring, from the base model's signatures ``first``."""
+    """Steps 2-5 of the module docstring, from the base model's signatures ``first``.
+
+    Each round fits every candidate (an effect whose signature differs) alone on top of the model so far and names the
+    one whose extended model gains most on the held-out pairs, if any is confirmed (:func:`confirmed`): the cause that
+    explains most is named first, so that what it also explains (a moved split's brightness ramp) leaves the other
+    signatures before they are fitted."""
     sigs = first
     model = base
     steps: list[Step] = []
-    suspects: list[dict[str, Any]] = []
-    tried: set[str] = set()
+    tries: dict[str, int] = {}
+    last: dict[str, _Trial] = {}
     trace: list[dict[str, Any]] = []
     while len(steps) < cfg.max_causes:
-        cands = sorted((s for e, s in sigs.items() if e != "noise" and e in cfg.effects and e not in tried and s.differs(cfg.alpha)),
-                       key=lambda s: -s.strength())
+        cands = sorted((s for e, s in sigs.items() if e != "noise" and e in cfg.effects and e not in {x.name for x in steps}
+                        and tries.get(e, 0) < MAX_TRIES and s.differs(cfg.alpha)), key=lambda s: -s.strength())
         if not cands:
             break
-        sig = cands[0]
-        tried.add(sig.effect)
-        progress(f"fitting {sig.effect}")
-        t0 = time.perf_counter()
-        comp = new_component(sig.effect, fit)
-        start_from_signature(comp, sig, fit)
-        ext = refit(copy_model(model).with_component(comp), fit, cfg.cause_lm_iters)
-        g = held.gain(model, ext)
-        entry = {"candidates": [s.effect for s in cands], "tried": sig.effect, "strength": sig.strength(), **_gain_json(g)}
-        if confirmed(g):
-            log.info("named %s: held-out gain %+.3f dB [%+.3f, %+.3f]", sig.effect, g["gain_db"], *g["gain_ci_db"])
-            steps.append(Step(sig.effect, ext, sig, g, time.perf_counter() - t0))
-            model = ext
-            entry["decision"] = "named"
-            progress(f"re-measuring the atlas with {sig.effect}")
-            sigs = remeasure(model)
-        else:
-            log.info("%s is a suspect: held-out gain %+.3f dB [%+.3f, %+.3f]", sig.effect, g["gain_db"], *g["gain_ci_db"])
-            suspects.append({"name": sig.effect, **_gain_json(g), "signature": sig.to_json(cfg.alpha),
-                             "why": "its signature differs from the simulator's, but the model extended by it does not predict the "
-                                    f"held-out pairs better (PSNR gain {g['gain_db']:+.3f} dB, 95 % CI [{g['gain_ci_db'][0]:+.3f}, "
-                                    f"{g['gain_ci_db'][1]:+.3f}])"})
-            entry["decision"] = "suspect"
-        trace.append(entry)
+        trials = []
+        for sig in cands:
+            progress(f"fitting {sig.effect}")
+            t0 = time.perf_counter()
+            comp = new_component(sig.effect, fit)
+            start_from_signature(comp, sig, fit)
+            ext = refit(copy_model(model).with_component(comp), fit, cfg.cause_lm_iters)
+            tr = _Trial(sig, ext, held.gain(model, ext), time.perf_counter() - t0)
+            trials.append(tr)
+            last[sig.effect] = tr
+            tries[sig.effect] = tries.get(sig.effect, 0) + 1
+        ok = [tr for tr in trials if confirmed(tr.gain)]
+        trace.append({"candidates": [{"effect": tr.sig.effect, "strength": tr.sig.strength(), **_gain_json(tr.gain),
+                                      "confirmed": confirmed(tr.gain)} for tr in trials]})
+        if not ok:
+            break
+        best = max(ok, key=lambda tr: tr.gain["gain_db"])
+        log.info("named %s: held-out gain %+.3f dB [%+.3f, %+.3f]", best.sig.effect, best.gain["gain_db"], *best.gain["gain_ci_db"])
+        trace[-1]["named"] = best.sig.effect
+        steps.append(Step(best.sig.effect, best.model, best.sig, best.gain, best.seconds))
+        model = best.model
+        progress(f"re-measuring the atlas with {best.sig.effect}")
+        sigs = remeasure(model)
+    named = {s.name for s in steps}
+    suspects = []
+    for e, tr in last.items():
+        if e in named:
+            continue
+        g = tr.gain
+        suspects.append({"name": e, **_gain_json(g), "signature": tr.sig.to_json(cfg.alpha),
+                         "why": "its signature differs from the simulator's, but the model extended by it does not predict the "
+                                f"held-out pairs better (PSNR gain {g['gain_db']:+.3f} dB, 95 % CI [{g['gain_ci_db'][0]:+.3f}, "
+                                f"{g['gain_ci_db'][1]:+.3f}]; {MIN_GAIN_DB:g} dB and an interval above 0 name a cause)"})
     naming = Naming(steps, model, sigs, first, suspects=suspects, trace=trace)
     if len(steps) > 1:
         progress("checking each cause given the others")
@@ -271,6 +299,10 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
     return naming
 
 
+CHECK_LM_ITERS = 3
+"""Iterations of each refit of the check given the others (started at the full model's values)."""
+
+
 def check_given_others(naming: Naming, fit: Sequence[Sample], held: HeldOut, cfg: DiagnoseConfig) -> None:
     """Step 5: each cause's held-out gain given the others; while one's interval does not lie above 0, the weakest
     is dropped (a look-alike of the cause whose model explains it) and the rest are refitted and checked again."""
@@ -278,8 +310,8 @@ def check_given_others(naming: Naming, fit: Sequence[Sample], held: HeldOut, cfg
         model = naming.model
         gains: dict[str, dict[str, Any]] = {}
         models: dict[str, BaseModel] = {}
-        for s in naming.steps:
-            models[s.name] = refit(without(model, s.name), fit, cfg.cause_lm_iters)
+        for s in naming.steps:  # started at the full model's values: a few iterations reach the refit
+            models[s.name] = refit(without(model, s.name), fit, CHECK_LM_ITERS)
             gains[s.name] = held.gain(models[s.name], model)
         weak = [n for n, g in gains.items() if not confirmed(g)]
         if not weak:
@@ -299,14 +331,14 @@ def check_given_others(naming: Naming, fit: Sequence[Sample], held: HeldOut, cfg
         naming.steps = [s for s in naming.steps if s.name != worst]
         naming.model = models[worst]
         if len(naming.steps) == 1:
-            naming.given_others = {naming.steps[0].name: held.gain(refit(without(naming.model, naming.steps[0].name), fit, cfg.cause_lm_iters),
+            naming.given_others = {naming.steps[0].name: held.gain(refit(without(naming.model, naming.steps[0].name), fit, CHECK_LM_ITERS),
                                                                    naming.model)}
             return
 
 
 def _explainer(model: BaseModel, names: list[str], fit: Sequence[Sample], held: HeldOut, cfg: DiagnoseConfig) -> str:
     """Of ``names`` (causes of ``model``), the one whose removal costs ``model`` most on the held-out pairs."""
-    costs = {n: held.gain(refit(without(model, n), fit, cfg.cause_lm_iters), model)["gain_db"] for n in names}
+    costs = {n: held.gain(refit(without(model, n), fit, CHECK_LM_ITERS), model)["gain_db"] for n in names}
     return max(costs, key=costs.get)
 
 

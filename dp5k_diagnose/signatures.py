@@ -121,14 +121,22 @@ def window_radius(key: Key) -> float:
     return max(abs(lo), abs(hi)) / 2 + WINDOW_MARGIN_PX
 
 
-def cell_moments(atlas: Atlas, key: Key, name: str, channel: int | None = None) -> tuple[Moments, Moments]:
-    """(point, bootstrap) :class:`Moments` of a cell's kernels, the channels averaged (or one ``channel``);
-    the bootstrap's leading axis is the resample."""
-    k = atlas.kernels(key, name)
-    kb = atlas.kernels(key, name, boot=True)
-    pick = (lambda a: a.mean(-3)) if channel is None else (lambda a: a[..., channel, :, :])
+def _channels(k: np.ndarray) -> np.ndarray:
+    """(..., 2, 3, K, K) -> (..., 4, 2, K, K): the channels' mean, then R, G and B."""
+    k = np.moveaxis(k, -3, -4)  # (..., 3, 2, K, K)
+    return np.concatenate([k.mean(-4, keepdims=True), k], axis=-4)
+
+
+def channel_index(channel: int | None) -> int:
+    """The index :func:`cell_moments` gives a channel: 0 the channels' mean, 1-3 R, G, B."""
+    return 0 if channel is None else channel + 1
+
+
+def cell_moments(atlas: Atlas, key: Key, name: str) -> tuple[Moments, Moments]:
+    """(point, bootstrap) :class:`Moments` of a cell's kernels, each of leading shape (4,) (point) or (B, 4)
+    (bootstrap): the channels' mean, then R, G and B (:func:`channel_index`)."""
     r = window_radius(key)
-    return moments(pick(k), r), moments(pick(kb), r)
+    return moments(_channels(atlas.kernels(key, name)), r), moments(_channels(atlas.kernels(key, name, boot=True)), r)
 
 
 # ---------------------------------------------------------------------------------------------- signatures
@@ -165,8 +173,10 @@ class Value:
     def p_value(self) -> float:
         if self.p is not None:
             return self.p
-        if not np.isfinite(self.value) or not np.isfinite(self.se) or self.se <= 0:
+        if not np.isfinite(self.value) or not np.isfinite(self.se):
             return 1.0
+        if self.se <= 0:  # no spread over the resamples: the difference is what it is
+            return 0.0 if self.value != 0 else 1.0
         return float(math.erfc(abs(self.value) / self.se / math.sqrt(2)))
 
     def interval(self, level: float = 0.95) -> tuple[float, float]:
@@ -235,16 +245,22 @@ def _wmean(x: np.ndarray, w: np.ndarray, axis: int = -1) -> np.ndarray:
     return np.where(ok, x * w, 0.0).sum(axis) / np.maximum(np.where(ok, w, 0.0).sum(axis), 1e-30)
 
 
-def _table(atlas: Atlas, keys: list[Key], name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """attr -> (point (n,), boot (B, n)) of every :class:`Moments` field and property over ``keys``."""
-    pts: dict[str, list] = {}
-    bts: dict[str, list] = {}
+MOMENTS = ("cx", "cy", "gap", "gap_ideal", "size", "r2", "aniso", "efficiency", "profile")
+
+
+def _table(atlas: Atlas, keys: list[Key], name: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """attr -> (point (4, n), boot (B, 4, n)) of every :class:`Moments` field and property over ``keys``, per
+    :func:`channel_index`."""
+    pts: dict[str, list] = {a: [] for a in MOMENTS}
+    bts: dict[str, list] = {a: [] for a in MOMENTS}
     for key in keys:
-        p, b = cell_moments(atlas, key, name, channel)
-        for attr in ("cx", "cy", "gap", "gap_ideal", "size", "r2", "aniso", "efficiency", "profile"):
-            pts.setdefault(attr, []).append(float(getattr(p, attr)))
-            bts.setdefault(attr, []).append(getattr(b, attr))
-    return {a: (np.asarray(pts[a]), np.stack(bts[a], -1)) for a in pts}
+        p, b = cell_moments(atlas, key, name)
+        for attr in MOMENTS:
+            pts[attr].append(np.asarray(getattr(p, attr), dtype=np.float64))
+            bts[attr].append(np.asarray(getattr(b, attr), dtype=np.float64))
+    if not keys:
+        return {a: (np.zeros((4, 0)), np.zeros((atlas.weights.shape[0], 4, 0))) for a in MOMENTS}
+    return {a: (np.stack(pts[a], -1), np.stack(bts[a], -1)) for a in MOMENTS}
 
 
 PLAUSIBLE: dict[str, tuple[float, float]] = {
@@ -282,12 +298,15 @@ class Pairing:
         self.c = np.array([self.atlas.cells[k].mean_coc_px for k in self.keys])
         self.cbar = self.c
         self.pix = np.array([float(self.atlas.cells[k].pixels.sum()) for k in self.keys])
-        self._t: dict[tuple[str, int | None], dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+        self._t: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
 
     def t(self, name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        if (name, channel) not in self._t:
-            self._t[(name, channel)] = _table(self.atlas, self.keys, name, channel)
-        return self._t[(name, channel)]
+        """attr -> (point (n,), boot (B, n)) of view-set ``name``'s moments over the cells (one ``channel`` or their
+        mean), computed once for every channel."""
+        if name not in self._t:
+            self._t[name] = _table(self.atlas, self.keys, name)
+        j = channel_index(channel)
+        return {a: (p[j], b[:, j]) for a, (p, b) in self._t[name].items()}
 
     def diff(self, attr: str, channel: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(point (n,), boot (B, n)): measured minus simulator of a moment over the cells, missing (NaN) where either
@@ -384,34 +403,49 @@ def misregistration_signature(p: Pairing) -> Signature:
     return Signature("misregistration", [p.value("shift_x", "px", "cx", sel, 0.08), p.value("shift_y", "px", "cy", sel, 0.08)])
 
 
-FOCUS_RANGE_PX = (1.0, 22.0)
+FOCUS_RANGE_PX = (0.5, 22.0)
 """|CoC| range (px) of the bins whose front/back odd part measures a focus or colour error."""
 
 
-def focus_signature(p: Pairing) -> Signature:
-    """A focus error adds the same CoC beta on both sides of focus: the blur grows by beta/3 behind and shrinks by as
-    much in front (:data:`SIZE_PER_COC`). beta is the size fit's ``alpha`` (:meth:`Pairing.sided_fit`) times 3 (px of
-    CoC)."""
-    fit = p.sided_fit("size", *FOCUS_RANGE_PX)
+IDEAL_GAP_PER_COC = 4.0 / (3.0 * math.pi)
+"""The ideal split's L-R centroid gap per px of CoC (half discs of a flat disc: ``4 c / (3 pi)``)."""
+
+
+def _focus_from_gap(p: Pairing, channel: int | None = None) -> tuple[float, np.ndarray] | None:
+    """beta, the CoC (px) a focus error adds on both sides of focus, and its bootstrap: the L-R centroid gap is
+    ``(4 / 3 pi) e (c + beta)`` (``e`` the split's efficiency), so beta is the constant ``d0`` of the gap difference's
+    fit ``d0 + alpha sign(c) + g_even |c| + g_odd c`` (:meth:`Pairing.sided_fit`) over ``e 4 / (3 pi)``: a change of
+    the efficiency moves ``g_odd``, a profile that differs between the sides (which moves the halves' centroids apart
+    on one side and together on the other) ``g_even`` and ``alpha``. The gap is a first moment, measured more
+    precisely than a size."""
+    fit = p.sided_fit("gap", *FOCUS_RANGE_PX, channel=channel, terms=("d0", "alpha", "g_even", "g_odd"))
     if fit is None:
-        return Signature("focus_offset", unmeasured="too few bins measured on both sides of focus (|CoC| 1-22 px)")
-    (_, a, _, _), boot = fit
-    return Signature("focus_offset", [Value("coc_offset", "px of CoC", a / SIZE_PER_COC, boot[:, 1] / SIZE_PER_COC, 0.15)])
+        return None
+    (d0, _, _, _), boot = fit
+    big = np.abs(p.c) >= 2.2
+    e = float(_wmean(_plausible("efficiency", p.t(p.measured, channel)["efficiency"][0]), np.where(big, p.pix, 0.0))) if big.any() else 1.0
+    k = 1.0 / (IDEAL_GAP_PER_COC * max(e if np.isfinite(e) else 1.0, 0.2))
+    return k * float(d0), k * boot[:, 0]
+
+
+def focus_signature(p: Pairing) -> Signature:
+    """A focus error adds the same CoC beta (px) on both sides of focus: it moves where the DP disparity vanishes
+    (:func:`_focus_from_gap`)."""
+    f = _focus_from_gap(p)
+    if f is None:
+        return Signature("focus_offset", unmeasured=f"too few bins measured on both sides of focus (|CoC| {FOCUS_RANGE_PX[0]:g}-{FOCUS_RANGE_PX[1]:g} px)")
+    return Signature("focus_offset", [Value("coc_offset", "px of CoC", f[0], f[1], 0.15)])
 
 
 def chromatic_signature(p: Pairing, colour: bool) -> Signature:
     """The focus signature per colour channel, red and blue against green (px of CoC)."""
     if not colour:
         return Signature("chromatic_defocus", unmeasured="the data has no colour (R = G = B within noise)")
-    fits = [p.sided_fit("size", *FOCUS_RANGE_PX, channel=ch) for ch in range(3)]
+    fits = [_focus_from_gap(p, channel=ch) for ch in range(3)]
     if any(f is None for f in fits):
-        return Signature("chromatic_defocus", unmeasured="too few bins measured on both sides of focus (|CoC| 1-22 px)")
-    out = []
-    for ch, label in ((0, "red"), (2, "blue")):
-        v = (fits[ch][0][1] - fits[1][0][1]) / SIZE_PER_COC
-        vb = (fits[ch][1][:, 1] - fits[1][1][:, 1]) / SIZE_PER_COC
-        out.append(Value(f"coc_offset_{label}_vs_green", "px of CoC", float(v), vb, 0.12))
-    return Signature("chromatic_defocus", out)
+        return Signature("chromatic_defocus", unmeasured=f"too few bins measured on both sides of focus (|CoC| {FOCUS_RANGE_PX[0]:g}-{FOCUS_RANGE_PX[1]:g} px)")
+    return Signature("chromatic_defocus", [Value(f"coc_offset_{label}_vs_green", "px of CoC", fits[ch][0] - fits[1][0], fits[ch][1] - fits[1][1], 0.15)
+                                           for ch, label in ((0, "red"), (2, "blue"))])
 
 
 def front_back_signature(p: Pairing) -> Signature:
@@ -456,7 +490,11 @@ FVP_DESCRIPTORS: dict[str, tuple[str, float]] = {
 def _zone_descriptors(atlas: Atlas, name: str) -> dict[str, dict[tuple[int, int], tuple[float, np.ndarray, float]]]:
     """descriptor -> (zone, coarse bin) -> (point, boot (B,), weight), relative to the zones' weighted mean per bin."""
     zkeys = [k for k in atlas.cells if k[1] >= 0 and atlas.cells[k].measured and abs(COARSE.centre(k[0])) >= FVP_MIN_COC_PX]
-    mom = {k: cell_moments(atlas, k, name) for k in zkeys}
+    mom = {}
+    for k in zkeys:  # the channels' mean
+        pt, bt = cell_moments(atlas, k, name)
+        mom[k] = (Moments(*(np.asarray(getattr(pt, f))[0] for f in Moments.__dataclass_fields__)),
+                  Moments(*(np.asarray(getattr(bt, f))[:, 0] for f in Moments.__dataclass_fields__)))
     pix = {k: float(atlas.cells[k].pixels.sum()) for k in zkeys}
     out: dict[str, dict[tuple[int, int], tuple[float, np.ndarray, float]]] = {d: {} for d in FVP_DESCRIPTORS}
     for b in sorted({k[0] for k in zkeys}):
