@@ -1,9 +1,11 @@
-"""The confusion matrix of ``dp5k diagnose`` (issue 30): every effect alone, every pair, a few triples and clean
-sets, each at two strengths and three seeds, rendered by two renderers that share no code with dp5k.
+"""The confusion matrix of ``dp5k diagnose``: every effect alone, every pair, a few triples and clean sets, each at
+two strengths and three seeds, rendered by three renderers that share no code with dp5k.
 
 Renderers: ``foreign`` (``dp5k_testing/foreign_dp.py``: a per-pixel scatter of half discs without occlusion, its
-nominal noise 2e-5, 1e-3) and ``aperture`` (``dp5k_testing/aperture_dp.py``: a sub-aperture gather with z-buffer
-occlusion, nominal noise 2e-4, 2e-3). Each case writes a dataset (sensor noise on), runs diagnose in-process as
+nominal noise 2e-5, 1e-3), ``aperture`` (``dp5k_testing/aperture_dp.py``: a sub-aperture gather with z-buffer
+occlusion, nominal noise 2e-4, 2e-3) and ``pupil`` (``dp5k_testing/pupil_dp.py``: PSFs from a pupil function with
+layered occlusion, nominal noise 5e-5, 1.5e-3). ``pupil`` is held out: diagnose is developed on the other two and
+its results on ``pupil`` are reported as they come. Each case writes a dataset (sensor noise on), runs diagnose in-process as
 ``dp5k diagnose --nominal-noise SHOT,READ`` does with every other option at its default, reads report.json and
 appends one line to ``OUT/results.jsonl``: planted set, named ``causes`` in order, ``suspects``, ``lookalikes``,
 seconds and machine load. Re-runs skip finished cases; datasets are deleted after each case unless ``--keep``
@@ -15,7 +17,7 @@ is :data:`NEAR_SIGNAL` of the nominal noise variance (its "oracle signal", measu
 the benchmark's size and stored in ``OUT/strengths.json``), and for ``noise`` the strength at which the views'
 variance is :data:`NEAR_NOISE_RATIO` x nominal (diagnose names noise above 1.5 x).
 
-    python benchmarks/diagnose_matrix.py [--out DIR] [--quick] [--renderers foreign,aperture] [--cases LIST]
+    python benchmarks/diagnose_matrix.py [--out DIR] [--quick] [--renderers foreign,aperture,pupil] [--cases LIST]
         [--strengths near,moderate] [--seeds 0,1,2] [--size 256x170] [--pairs 24] [--jobs N] [--keep]
         [--report-only] [--details] [--calibrate] [--time-render]
 
@@ -49,7 +51,7 @@ import numpy as np
 
 from dp5k_common.effects import EFFECT_NAMES
 from dp5k_common.software import software_line
-from dp5k_testing import aperture_dp, foreign_dp
+from dp5k_testing import aperture_dp, foreign_dp, pupil_dp
 
 TRIPLES: tuple[tuple[str, ...], ...] = (
     ("lr_gain_imbalance", "field_varying_psf", "disparity_scale"),  # issue 30: the gain ramp was absorbed
@@ -99,6 +101,10 @@ def _write_aperture(out: Path, strengths: dict[str, float], seed: int, size: tup
     aperture_dp.write_dataset(out, strengths or "none", 1.0, scenes=max(3, pairs // 2), size=size, seed=seed, noise=noise)
 
 
+def _write_pupil(out: Path, strengths: dict[str, float], seed: int, size: tuple[int, int], pairs: int, noise: bool) -> None:
+    pupil_dp.write_dataset(out, strengths or "none", 1.0, scenes=max(3, pairs // 2), size=size, seed=seed, noise=noise)
+
+
 def _empirical_ratio(add_noise: Callable[[np.ndarray], np.ndarray], shot: float, read: float) -> float:
     img = np.full((256, 256, 3), 0.25)
     return float(np.var(add_noise(img) - img) / (shot * 0.25 + read * read))
@@ -119,6 +125,7 @@ def _aperture_noise_ratio(strength: float) -> float:
 RENDERERS: dict[str, Renderer] = {
     "foreign": Renderer("foreign", (foreign_dp.NOMINAL_SHOT_VAR, foreign_dp.NOMINAL_READ_SIGMA), _write_foreign, _foreign_noise_ratio),
     "aperture": Renderer("aperture", (aperture_dp.NOMINAL_SHOT_VAR, aperture_dp.NOMINAL_READ_SIGMA), _write_aperture, _aperture_noise_ratio),
+    "pupil": Renderer("pupil", (pupil_dp.NOMINAL_SHOT_VAR, pupil_dp.NOMINAL_READ_SIGMA), _write_pupil, lambda s: pupil_dp.noise_ratio(s, 0.25)),
 }
 
 
@@ -288,8 +295,8 @@ def init_worker(ignore_sigint: bool = True) -> None:
 
 
 COSTLY_EFFECTS: dict[str, float] = {"field_varying_psf": 3.0, "chromatic_defocus": 1.5}
-"""How many times a set's usual diagnosis time an effect's presence costs, roughly (the quick matrices of
-2026-12-06): a field-varying PSF renders on 3 x 3 field nodes, a chromatic defocus three colour planes."""
+"""How many times a set's usual diagnosis time an effect's presence costs, roughly: a field-varying PSF renders on
+3 x 3 field nodes, a chromatic defocus three colour planes."""
 
 
 def expected_cost(case: Case) -> float:
@@ -306,9 +313,10 @@ def run_job(job: tuple[Case, dict[str, float], Path, tuple[int, int], int, bool]
 
 def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int, int], pairs: int, keep: bool) -> dict[str, Any]:
     """Write the case's dataset, diagnose it as the CLI does, and return its result row."""
-    from dp5k_diagnose.config import DetectConfig
+    from dp5k_diagnose.config import DiagnoseConfig
+    from dp5k_diagnose.data import auto_fit_pairs
+    from dp5k_diagnose.run import run_diagnose
     from neural_dp.registry import SimulatorSpec
-    from dp5k_diagnose.run import DiagnoseConfig, auto_fit_pairs, run_diagnose
 
     renderer = RENDERERS[case.renderer]
     ds = out / "sets" / case.slug
@@ -324,7 +332,7 @@ def run_case(case: Case, strengths: dict[str, float], out: Path, size: tuple[int
         row["render_seconds"] = round(time.perf_counter() - t0, 1)
         row["load_before"] = round(os.getloadavg()[0], 2)
         shot, read = renderer.nominal_noise
-        cfg = DiagnoseConfig(seed=0, fit_pairs=auto_fit_pairs(ds), detect=DetectConfig(nominal_shot_var=shot, nominal_read_sigma=read))
+        cfg = DiagnoseConfig(seed=0, fit_pairs=auto_fit_pairs(ds), nominal_shot_var=shot, nominal_read_sigma=read)
         t1 = time.perf_counter()
         run_diagnose(ds, SimulatorSpec(), ds / "diagnose", cfg)
         row["seconds"] = round(time.perf_counter() - t1, 1)
@@ -563,7 +571,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("diagnose-matrix"), help="results.jsonl, strengths.json, reports/ (default ./diagnose-matrix)")
     ap.add_argument("--quick", action="store_true", help="moderate strength, seed 0, one renderer (aperture, or the one --renderers names)")
-    ap.add_argument("--renderers", help="comma-separated, from foreign, aperture (default both)")
+    ap.add_argument("--renderers", help="comma-separated, from foreign, aperture, pupil (default all three)")
     ap.add_argument("--cases", help="names (a, a+b, none) and groups clean, singles, pairs, triples, all (default all)")
     ap.add_argument("--strengths", help="comma-separated, from near, moderate (default both)")
     ap.add_argument("--seeds", help="comma-separated integers (default 0,1,2)")
@@ -583,8 +591,8 @@ def main(argv: list[str] | None = None) -> int:
         a.strengths, a.seeds = "moderate", "0"
         a.renderers = a.renderers or "aperture"
         if "," in a.renderers:
-            raise SystemExit("diagnose_matrix: --quick runs one renderer; give --renderers foreign or aperture")
-    a.renderers = a.renderers or "foreign,aperture"
+            raise SystemExit("diagnose_matrix: --quick runs one renderer; give --renderers foreign, aperture or pupil")
+    a.renderers = a.renderers or "foreign,aperture,pupil"
     a.cases = a.cases or "all"
     a.strengths = a.strengths or "near,moderate"
     a.seeds = a.seeds or "0,1,2"

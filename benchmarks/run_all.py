@@ -4,8 +4,7 @@
 
 Each benchmark runs as its own process (so one's memory does not count against the next) and prints its own
 table; a summary of wall times and exit codes closes the run. ``--full`` gives ``bench_diagnose`` its whole
-table instead of the 30-pair target case. The studies (``detectability_sweep.py``, ``foreign_sweep.py``, ``multi_cause_sweep.py``,
-``diagnose_matrix.py``, ``quality_simulators.py``) measure detection and accuracy, not speed, take tens of minutes to
+table instead of the 30-pair target case. The studies (``diagnose_matrix.py``, ``quality_simulators.py``) measure detection and accuracy, not speed, take tens of minutes to
 hours, and are run on their own (docs/diagnose.md, docs/simulators.md).
 """
 

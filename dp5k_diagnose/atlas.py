@@ -110,7 +110,12 @@ MAX_GRID = 25
 """Largest kernel grid side (blocks); wider kernels are solved on blocks of several px."""
 
 SAMPLES_PER_UNKNOWN = 12
-"""Pixels drawn per kernel unknown (at most) for a cell's normal matrix."""
+"""Pixels drawn per kernel unknown, at least, for a cell's normal matrix (all of them where there are fewer)."""
+
+GRAM_BUDGET = 2e9
+"""... and as many more as keep a cell's normal matrix (pixels x unknowns^2 multiply-adds per channel) within this:
+every pixel of a small kernel's cell counts (the kernels near focus, which a focus or colour error changes by a
+fraction of a px, need all of them), a wide kernel's cell keeps 12 per unknown."""
 
 REG = 1e-4
 """Tikhonov weight of the kernel's gradient energy, as a multiple of the normal matrix's mean diagonal."""
@@ -405,7 +410,8 @@ class AtlasMeasurer:
             for key, m in ms.items():
                 counts[key] = counts.get(key, 0.0) + float(m.sum())
         self.grids = {key: Grid.of(key) for key in counts}
-        rates = {key: min(1.0, SAMPLES_PER_UNKNOWN * self.grids[key].n / counts[key]) for key in counts}
+        rates = {key: min(1.0, max(SAMPLES_PER_UNKNOWN * self.grids[key].n, GRAM_BUDGET / self.grids[key].n ** 2) / counts[key])
+                 for key in counts}
         # the sampled pixels of every (pair, cell), drawn once from a generator per pair
         self.samples: list[dict[Key, tuple[np.ndarray, np.ndarray]]] = []
         for i, ms in enumerate(self.masks):

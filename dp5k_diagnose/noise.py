@@ -139,9 +139,9 @@ class NoiseMeasure:
 
 def measure_noise(base: BaseModel, samples: list[Sample], cfg: DiagnoseConfig) -> NoiseMeasure:
     r"""The views' white noise from :func:`flat_lr_noise` (flatness and the L - R signal predicted by ``base``):
-    per pixel :math:`z = \hat\sigma^2 / \sigma^2_{nom}(I)`, the pooled robust variance ratio
-    (:func:`dp5k_common.sensor_noise.noise_model_fit`) with a bootstrap over pairs, and the noise model
-    ``var = shot_var I + read_sigma^2`` fitted to the flat pixels."""
+    per pixel :math:`z = \hat\sigma^2 / \sigma^2_{nom}(I)`, the pooled robust variance ratio and the noise model
+    ``var = shot_var I + read_sigma^2`` (:func:`dp5k_common.sensor_noise.noise_model_fit`), with a bootstrap over
+    pairs of each pair's own fit weighted by its samples (:func:`noise_model_draws`)."""
     var, inten = flat_lr_noise(samples, FLAT, base)
     if sum(v.size for v in var) < MIN_NOISE_SAMPLES:
         return NoiseMeasure(False, note="too few flat valid pixels to measure noise")
@@ -164,16 +164,21 @@ INTERVAL_LEVEL = 0.95
 
 
 def noise_model_draws(var: list[np.ndarray], inten: list[np.ndarray], nominal: list[np.ndarray], seed: int = 0) -> np.ndarray:
-    """(NOISE_BOOT, 3) bootstrap draws over pairs of (shot_var, read_sigma, variance_ratio); empty with fewer than
-    2 pairs."""
-    if len(var) < 2:
+    """(NOISE_BOOT, 3) bootstrap draws over pairs of (shot_var, read_sigma, variance_ratio): each pair's own noise
+    model fitted once (:func:`noise_model_fit`), the resamples' weighted means (weights: the pairs' flat samples);
+    empty with fewer than 2 pairs with samples enough to fit."""
+    fits, weights = [], []
+    for v, i, n in zip(var, inten, nominal):
+        if v.size >= MIN_PAIR_NOISE_SAMPLES:
+            rho, coef = noise_model_fit(v, i, n)
+            fits.append((max(coef[0], 0.0), max(coef[1], 0.0), rho))
+            weights.append(v.size)
+    if len(fits) < 2:
         return np.zeros((0, 3))
+    f, w = np.array(fits), np.array(weights, dtype=np.float64)
     rng = np.random.default_rng(seed)
-    draws = []
-    for _ in range(NOISE_BOOT):
-        idx = rng.integers(0, len(var), len(var))
-        rho, coef = noise_model_fit(*(np.concatenate([a[i] for i in idx]) for a in (var, inten, nominal)))
-        draws.append((max(coef[0], 0.0), math.sqrt(max(coef[1], 0.0)), rho))
-    return np.array(draws)
+    counts = rng.multinomial(len(f), np.full(len(f), 1.0 / len(f)), size=NOISE_BOOT) * w[None]  # (B, P)
+    m = counts @ f / counts.sum(1, keepdims=True)  # (B, 3): shot_var, read_sigma^2, ratio
+    return np.stack([m[:, 0], np.sqrt(m[:, 1]), m[:, 2]], 1)
 
 

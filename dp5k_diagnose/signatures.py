@@ -80,39 +80,47 @@ MIN_VIEW_SHARE = 0.1
 (its moments are NaN): a split moved far off axis, a view nearly dark."""
 
 
-def moments(k: np.ndarray, radius_px: float) -> Moments:
-    """:class:`Moments` of kernels ``k`` (..., 2, K, K) (L, R; offset 0 at the centre) inside a disc of
-    ``radius_px`` centred on the kernels' centroid (found inside the disc about 0, then once more about it).
+def _functionals(k: np.ndarray, radius_px: float, cx0: np.ndarray, cy0: np.ndarray) -> Moments:
+    """:class:`Moments` of kernels ``k`` (..., C, 2, K, K) inside a disc of ``radius_px`` about (cx0, cy0) (each (C,),
+    also the centre the absolute moments are taken about): every moment a ratio of linear functionals of the kernels,
+    so a stack of bootstrap kernels costs one contraction."""
+    h = k.shape[-1] // 2
+    yy, xx = np.mgrid[-h : h + 1, -h : h + 1].astype(np.float64)
+    dx = xx[None] - cx0[:, None, None]
+    dy = yy[None] - cy0[:, None, None]
+    r = np.sqrt(dx**2 + dy**2)
+    win = (r <= radius_px).astype(np.float64)
+    maps = np.stack([win, win * xx, win * yy, win * r, win * r * r, win * np.abs(dx), win * np.abs(dy)], 1)  # (C, 7, K, K)
+    f = np.einsum("...cvyx,cfyx->...cvf", k, maps)  # (..., C, 2, 7)
+    sv = f[..., 0]
+    ok = sv > MIN_VIEW_SHARE * np.abs(sv).mean(-1, keepdims=True)
+    norm = f[..., 1:] / np.where(ok, sv, np.nan)[..., None]  # per view: E_v[x], E_v[y], E_v[r], E_v[r^2], ...
+    F = norm.mean(-2)  # the views' normalised kernels averaged: (..., C, 6)
+    cx, cy, size, r2, ax, ay = (F[..., j] for j in range(6))
+    return Moments(cx, cy, norm[..., 1, 0] - norm[..., 0, 0], 2 * ax, size, r2, (ax - ay) / np.maximum(size, 1e-9))
+
+
+def moments(k: np.ndarray, radius_px: float, centre: tuple[np.ndarray, np.ndarray] | None = None) -> Moments:
+    """:class:`Moments` of kernels ``k`` (..., C, 2, K, K) (C kernel sets, e.g. colour channels; L, R; offset 0 at the
+    centre) inside a disc of ``radius_px`` centred on the kernels' centroid: found inside the disc about 0, then once
+    more about it; or, with ``centre`` ((C,) x, (C,) y), about that (the bootstrap takes its point estimate's).
 
     The L + R kernel is the mean of the two views' kernels each normalised to sum 1, so that no moment depends on
     the views' gains (with a plain sum, a brighter left view would pull the centroid left)."""
-    h = k.shape[-1] // 2
-    yy, xx = np.mgrid[-h : h + 1, -h : h + 1].astype(np.float64)
-    cx = np.zeros(k.shape[:-3])
-    cy = np.zeros(k.shape[:-3])
-    for _ in range(2):
-        dx = xx - cx[..., None, None]
-        dy = yy - cy[..., None, None]
-        win = (dx**2 + dy**2) <= radius_px**2
-        kw = np.where(win[..., None, :, :], k, 0.0)
-        sv = kw.sum((-1, -2))  # (..., 2)
-        ok = sv > MIN_VIEW_SHARE * np.abs(sv).mean(-1, keepdims=True)
-        sv = np.where(ok, sv, np.nan)
-        mxv = (kw * xx).sum((-1, -2)) / sv
-        full = (kw / sv[..., None, None]).sum(-3) / 2
-        cx = np.nan_to_num((full * xx).sum((-1, -2)), nan=0.0)
-        cy = np.nan_to_num((full * yy).sum((-1, -2)), nan=0.0)
-    bad = ~ok.all(-1)
-    dx = xx - cx[..., None, None]
-    dy = yy - cy[..., None, None]
-    r = np.sqrt(dx**2 + dy**2)
-    size = (full * r).sum((-1, -2))
-    r2 = (full * r * r).sum((-1, -2))
-    ax = (full * np.abs(dx)).sum((-1, -2))
-    ay = (full * np.abs(dy)).sum((-1, -2))
-    nan = lambda a: np.where(bad, np.nan, a)  # noqa: E731
-    return Moments(nan(cx), nan(cy), mxv[..., 1] - mxv[..., 0], nan(2 * ax), nan(size), nan(r2),
-                   nan((ax - ay) / np.maximum(size, 1e-9)))
+    if k.ndim == 3:  # one kernel set: (2, K, K)
+        m = moments(k[None], radius_px, centre)
+        return Moments(*(np.asarray(getattr(m, f))[0] for f in Moments.__dataclass_fields__))
+    C = k.shape[-4]
+    if centre is None:
+        if k.ndim != 4:
+            raise ValueError("moments: the centre of a stack of kernel sets is its point estimate's; pass it")
+        cx0, cy0 = np.zeros(C), np.zeros(C)
+        for _ in range(2):
+            m = _functionals(k, radius_px, cx0, cy0)
+            cx0, cy0 = np.nan_to_num(np.asarray(m.cx, dtype=np.float64)), np.nan_to_num(np.asarray(m.cy, dtype=np.float64))
+    else:
+        cx0, cy0 = centre
+    return _functionals(k, radius_px, np.asarray(cx0, dtype=np.float64), np.asarray(cy0, dtype=np.float64))
 
 
 def window_radius(key: Key) -> float:
@@ -134,9 +142,12 @@ def channel_index(channel: int | None) -> int:
 
 def cell_moments(atlas: Atlas, key: Key, name: str) -> tuple[Moments, Moments]:
     """(point, bootstrap) :class:`Moments` of a cell's kernels, each of leading shape (4,) (point) or (B, 4)
-    (bootstrap): the channels' mean, then R, G and B (:func:`channel_index`)."""
+    (bootstrap): the channels' mean, then R, G and B (:func:`channel_index`). The bootstrap's windows sit where the
+    point estimate's do."""
     r = window_radius(key)
-    return moments(_channels(atlas.kernels(key, name)), r), moments(_channels(atlas.kernels(key, name, boot=True)), r)
+    point = moments(_channels(atlas.kernels(key, name)), r)
+    centre = (np.nan_to_num(np.asarray(point.cx, dtype=np.float64)), np.nan_to_num(np.asarray(point.cy, dtype=np.float64)))
+    return point, moments(_channels(atlas.kernels(key, name, boot=True)), r, centre)
 
 
 # ---------------------------------------------------------------------------------------------- signatures

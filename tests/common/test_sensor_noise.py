@@ -84,18 +84,23 @@ def test_parse_json_and_specs() -> None:
 
 
 def test_diagnosed_reads_the_pooled_noise_of_a_diagnose_report(tmp_path: Path) -> None:
-    from dp5k_diagnose.config import DetectConfig
-    from dp5k_diagnose.findings import Finding
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from dp5k_diagnose.config import DiagnoseConfig
+    from dp5k_diagnose.noise import NoiseMeasure
     from dp5k_diagnose.run import noise_model
 
-    finding = Finding("noise", 3.0, 0.001, 2.0, True, {"shot_var": 6e-5, "read_sigma": 2.5e-3, "variance_ratio": 3.0}, "")
+    measured = NoiseMeasure(True, 3.0, np.full(10, 3.0), 6e-5, 2.5e-3)
     report = tmp_path / "report.json"
-    report.write_text(json.dumps({"noise_model": noise_model(finding, DetectConfig())}))  # what diagnose writes
+    report.write_text(json.dumps({"noise_model": noise_model(SimpleNamespace(noise=measured), DiagnoseConfig())}))  # what diagnose writes
     model = noise_from_spec(f"diagnosed:{report}")
     assert model is not None and model.shot_var == (6e-5,) * 3 and model.read_sigma == (2.5e-3,) * 3
     assert model.source == f"diagnosed:{report}"
 
-    report.write_text(json.dumps({"noise_model": noise_model(None, DetectConfig())}))  # noise not measured
+    unmeasured = NoiseMeasure(False, note="too few flat valid pixels to measure noise")
+    report.write_text(json.dumps({"noise_model": noise_model(SimpleNamespace(noise=unmeasured), DiagnoseConfig())}))  # noise not measured
     with pytest.raises(BadInputError, match="measured no noise model") as err:
         NoiseModel.from_report(report)
     assert err.value.where == str(report)

@@ -90,7 +90,7 @@ def test_diagnosis_numbers_equal_diagnose_reports(demo_out: Path) -> None:
         drep = json.loads((demo_out / f"diagnose-{name}" / "report.json").read_text())
         assert section[f"diagnose_{name}_cause"] == drep["cause"]
         assert section[f"diagnose_{name}_gain"] == drep["gain"]
-        assert [r[0] for r in section[f"diagnose_{name}"]["rows"]] == [f["effect"] for f in drep["findings"]]
+        assert [r[0] for r in section[f"diagnose_{name}"]["rows"]] == list(drep["signatures"])
 
 
 def test_second_run_reuses_every_stage(demo_out: Path) -> None:

@@ -92,7 +92,7 @@ def test_gain_imbalance_and_disparity_scale_are_both_named_with_their_parameters
 def test_noise_model_is_always_reported_and_nominal_noise_is_not_a_cause(gain_and_disparity) -> None:
     rep, _ = gain_and_disparity
     nm = rep["noise_model"]
-    assert nm["measured"] and not nm["excess_significant"]
+    assert nm["measured"] and not rep["signatures"]["noise"]["differs"]
     lo, hi = nm["intervals"]["variance_ratio"]
     assert lo <= nm["variance_ratio"] <= hi and lo < 1.5  # the studio's nominal sensor noise
     assert "noise" not in [c["name"] for c in rep["causes"]]
@@ -103,13 +103,10 @@ def test_psf_profile_and_focus_offset_are_both_named(profile_and_focus) -> None:
     by = _check_chain(rep, {"psf_profile", "focus_offset"})
     assert by["focus_offset"]["params"]["focus_factor"] == pytest.approx(truth["focus_offset"]["focus_factor"], abs=0.025), _summary(rep)
     assert by["psf_profile"]["params"]["rim_gain"] > 0.3 * truth["psf_profile"]["rim_gain"], _summary(rep)
-    # a forward selection took look-alikes (an L/R split shift, a rim-heavy back disc) before the focus
-    # offset: here both sit in the full model from the start, and the last refitted round confirmed each
-    # given the other (docs/diagnose.md)
-    sel = rep["selection"]
-    assert set(sel["full_model"]["components"]) >= {"psf_profile", "focus_offset"}
-    last = [r for r in sel["rounds"] if r.get("confirmation")][-1]
-    assert {t["effect"] for t in last["tests"] if t["passed"]} == {"psf_profile", "focus_offset"}
+    # each was named from its own signature, the second in a round after the first was in the model
+    named = [r["named"] for r in rep["naming"] if "named" in r]
+    assert set(named) >= {"psf_profile", "focus_offset"}
+    assert rep["signatures"]["psf_profile"]["differs"] and rep["signatures"]["focus_offset"]["differs"]
 
 
 def _grey_copy(src: Path, dst: Path) -> None:
@@ -131,7 +128,7 @@ def test_colour_effects_are_not_testable_on_grey_data(tmp_path: Path) -> None:
     studio.make_dataset(colour, scenes=8, effects={"focus_offset": 1.0}, size=SIZE, f_numbers=(1.8, 2.8), cameras=(0, 1), seed=4)
     _grey_copy(colour, tmp_path / "grey")
     rep = _diagnose(tmp_path / "grey")
-    chroma = next(f for f in rep["findings"] if f["effect"] == "chromatic_defocus")
-    assert not chroma["testable"] and not chroma["detected"] and "not testable" in chroma["explanation"]
+    chroma = rep["signatures"]["chromatic_defocus"]
+    assert not chroma["differs"] and "no colour" in chroma["unmeasured"]
     assert "chromatic_defocus" not in [c["name"] for c in rep["causes"]]
     assert rep["cause"] == "focus_offset", _summary(rep)

@@ -83,7 +83,7 @@ def test_cli_diagnose_neural_checkpoint_reports_its_extension(trained: tuple[Pat
     ds, ckpt = trained
     out = tmp_path / "diag"
     res = run_diagnose(ds, SimulatorSpec.parse(f"neural:{ckpt}"), out,
-                       DiagnoseConfig(fit_pairs=2, det_pairs=2, n_boot=100, neural=NeuralReachConfig(finetune=FinetuneConfig(steps=2))))
+                       DiagnoseConfig(fit_pairs=2, n_boot=100, neural=NeuralReachConfig(finetune=FinetuneConfig(steps=2))))
     saved = json.loads((out / "report.json").read_text())
     ne = saved["neural_extension"]
     assert saved["model"] == f"neural:{ckpt}" and ne == json.loads(json.dumps(res["neural_extension"]))

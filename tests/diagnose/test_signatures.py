@@ -4,6 +4,7 @@ error), and the kernels' moments behave as documented."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -21,6 +22,7 @@ P = 6
 """Pairs of the synthetic atlases."""
 
 
+@functools.lru_cache(maxsize=None)
 def kernel(h: int, c: float, side: int, *, rim: float = 0.0, shift: tuple[float, float] = (0.0, 0.0), leak: float = 0.0,
            scale_y: float = 1.0, ss: int = 8) -> np.ndarray:
     """(2h+1)^2 one view's PSF of signed CoC ``c`` px: the half disc behind focus on the ``side`` (-1 left view, +1
@@ -54,6 +56,7 @@ def view_kernels(key: A.Key, **kw) -> np.ndarray:
     return np.repeat(k[:, None], 3, axis=1)
 
 
+@functools.lru_cache(maxsize=None)
 def build(effect: str | None) -> A.Atlas:
     """An atlas of view-sets ``measured`` (the ideal kernels changed by ``effect``) and ``model`` (ideal), with whole
     field bins from -13 to +13 px of CoC and zone cells over the 3 x 3 field."""
