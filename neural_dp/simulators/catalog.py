@@ -9,6 +9,7 @@ raytrace   thin-lens ray tracing, aperture points (Pan 2021)     ``raytrace``
 base       the physical base model (``neural_dp.simulators.base``) ``base``
 neural     the Neural DP Simulator (Li et al. 2023)              ``neural:CKPT`` (a ``dp5k train`` checkpoint)
 diagnosed  the base model + the effects a diagnose report fitted ``diagnosed:REPORT.json`` (``dp5k diagnose``)
+measured   a camera's kernels from a diagnose PSF atlas          ``measured:ATLAS`` (``atlas.npz``)
 ========== ===================================================== =========================
 
 Every command that takes a simulator (``evaluate``, ``synthesize``, ``diagnose``, ``study downstream``) takes it
@@ -68,6 +69,12 @@ def _diagnosed() -> type[DPSimulator]:
     return DiagnosedSimulator
 
 
+def _measured() -> type[DPSimulator]:
+    from .measured import MeasuredSimulator
+
+    return MeasuredSimulator
+
+
 _FACTORIES: dict[str, Callable[[], type[DPSimulator]]] = {
     "disk": _disk,
     "butterworth": _butterworth,
@@ -75,6 +82,7 @@ _FACTORIES: dict[str, Callable[[], type[DPSimulator]]] = {
     "base": _base,
     "neural": _neural,
     "diagnosed": _diagnosed,
+    "measured": _measured,
 }
 """Name -> the simulator's class, imported when first asked for (ray tracing compiles with numba)."""
 PEERS: tuple[str, ...] = ("disk", "butterworth", "raytrace")
@@ -83,15 +91,18 @@ NEURAL_PREFIX = "neural:"
 """``neural:CKPT`` names the Neural DP Simulator together with its checkpoint."""
 DIAGNOSED_PREFIX = "diagnosed:"
 """``diagnosed:REPORT.json`` names the diagnosed simulator together with its report."""
-_WITH_FILE = {"neural": NEURAL_PREFIX, "diagnosed": DIAGNOSED_PREFIX}
-SYNTAX = "disk | butterworth | raytrace | base | neural:CKPT | diagnosed:REPORT.json"
+MEASURED_PREFIX = "measured:"
+"""``measured:ATLAS`` names the measured simulator together with its PSF atlas (``atlas.npz`` of ``dp5k diagnose``)."""
+_WITH_FILE = {"neural": NEURAL_PREFIX, "diagnosed": DIAGNOSED_PREFIX, "measured": MEASURED_PREFIX}
+SYNTAX = "disk | butterworth | raytrace | base | neural:CKPT | diagnosed:REPORT.json | measured:ATLAS"
 """What ``--simulator`` accepts (every command's help shows it)."""
 
 
 @dataclass(frozen=True)
 class SimulatorSpec:
     """A parsed ``--simulator``: ``name`` is a key of the table above; ``path`` is the file it needs (the Neural
-    DP checkpoint of ``neural``, the diagnose report of ``diagnosed``; None for the others).
+    DP checkpoint of ``neural``, the diagnose report of ``diagnosed``, the PSF atlas of ``measured``; None for the
+    others).
 
     >>> spec = SimulatorSpec.parse("neural:run/best.pt")
     >>> spec.name, spec.path.as_posix(), spec.is_neural
@@ -107,18 +118,20 @@ class SimulatorSpec:
         if self.name not in _FACTORIES:
             raise BadInputError(f"unknown simulator {self.name!r} ({SYNTAX})", where="--simulator")
         if (self.name in _WITH_FILE) != (self.path is not None):
-            raise BadInputError(f"{self.name!r}: only neural:CKPT and diagnosed:REPORT.json name a file ({SYNTAX})",
+            raise BadInputError(f"{self.name!r}: only neural:CKPT, diagnosed:REPORT.json and measured:ATLAS name a file ({SYNTAX})",
                                 where="--simulator")
 
     @classmethod
     def parse(cls, text: str, checkpoint: str | os.PathLike[str] | None = None) -> SimulatorSpec:
-        """``disk``, ``butterworth``, ``raytrace``, ``base``, ``neural:CKPT`` or ``diagnosed:REPORT.json``.
+        """``disk``, ``butterworth``, ``raytrace``, ``base``, ``neural:CKPT``, ``diagnosed:REPORT.json`` or
+        ``measured:ATLAS``.
 
         ``checkpoint`` completes a bare ``neural`` (the deprecated ``--checkpoint`` flag and
         ``get_simulator("neural", checkpoint)``); it is ignored for any other name.
 
         Raises:
-            BadInputError: an unknown name, ``neural`` / ``diagnosed`` without their file, a file after another name.
+            BadInputError: an unknown name, ``neural`` / ``diagnosed`` / ``measured`` without their file, a file after
+                another name.
         """
         text = text.strip()
         for name, prefix in _WITH_FILE.items():
@@ -134,6 +147,9 @@ class SimulatorSpec:
             return cls("neural", Path(checkpoint))
         if text == "diagnosed":
             raise BadInputError("the diagnosed simulator needs a report: diagnosed:REPORT.json (from 'dp5k diagnose')",
+                                where="--simulator")
+        if text == "measured":
+            raise BadInputError("the measured simulator needs a PSF atlas: measured:ATLAS (the atlas.npz of 'dp5k diagnose')",
                                 where="--simulator")
         return cls(text)
 
@@ -164,7 +180,7 @@ class SimulatorSpec:
     def check_files(self) -> None:
         """Raises BadInputError when the file the spec names is missing (before anything is computed or written)."""
         if self.path is not None and not self.path.is_file():
-            what = "Neural DP checkpoint" if self.is_neural else "diagnose report"
+            what = {"neural": "Neural DP checkpoint", "diagnosed": "diagnose report", "measured": "PSF atlas"}[self.name]
             raise BadInputError(f"{what} not found", where=self.path)
 
     def simulator_class(self) -> type[DPSimulator]:
@@ -172,7 +188,7 @@ class SimulatorSpec:
 
     def load(self) -> DPSimulator:
         """A ready simulator on the CPU in eval mode (published defaults; ``neural`` loaded from its checkpoint,
-        ``diagnosed`` rebuilt from its report).
+        ``diagnosed`` rebuilt from its report, ``measured`` from its atlas).
 
         Raises:
             BadInputError: an unreadable checkpoint, or a report without ``extended_model_spec``.
@@ -182,6 +198,10 @@ class SimulatorSpec:
             return cls.from_report(self.path)  # type: ignore[attr-defined]
         if self.is_neural:
             return cls.from_checkpoint(self.path)  # type: ignore[attr-defined]
+        if self.name == "measured":
+            sim = cls(self.path)
+            sim.eval()
+            return sim
         sim = cls()
         sim.eval()
         return sim
