@@ -37,13 +37,17 @@ def measured_views(samples: Sequence[Sample]) -> list[Views]:
     return [(s.batch.left[0].numpy(), s.batch.right[0].numpy()) for s in samples]
 
 
-def rendered_views(render: Render, samples: Sequence[Sample], noise: tuple[float, float] | None, seed: int) -> list[Views]:
-    """Each pair rendered, with white noise of variance ``shot I + read^2`` added (``noise``; None: none) from a
+def render_all(render: Render, samples: Sequence[Sample]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Each pair rendered (noise free)."""
+    with torch.no_grad():
+        return [render(s) for s in samples]
+
+
+def rendered_views(renders: Sequence[tuple[torch.Tensor, torch.Tensor]], noise: tuple[float, float] | None, seed: int) -> list[Views]:
+    """Each pair's render with white noise of variance ``shot I + read^2`` added (``noise``; None: none) from a
     generator seeded per pair."""
     out = []
-    for i, s in enumerate(samples):
-        with torch.no_grad():
-            l, r = render(s)
+    for i, (l, r) in enumerate(renders):
         views = [l[0].numpy().astype(np.float32), r[0].numpy().astype(np.float32)]
         if noise is not None:
             rng = np.random.default_rng([seed, 7919, i])
@@ -81,23 +85,30 @@ class Measurement:
     noise: NoiseMeasure
     colour: bool
     cfg: DiagnoseConfig
+    base: BaseModel | None = None
+    base_renders: list[tuple[torch.Tensor, torch.Tensor]] | None = None
+    """The base model and its renders of every pair: the noise is measured against them and the simulator's atlas of
+    the base model is measured from them (rendered once)."""
 
     @classmethod
     def of(cls, samples: Sequence[Sample], base: BaseModel, cfg: DiagnoseConfig) -> "Measurement":
         samples = list(samples)
         measurer = AtlasMeasurer(pair_images(samples), cfg.n_boot, cfg.seed)
-        noise = measure_noise(base, samples, cfg)
+        renders = render_all(lambda s: base.render(s.batch, s.field), samples)
+        noise = measure_noise(base, samples, cfg, renders)
         measurer.measure("measured", measured_views(samples), (noise.shot_var, noise.read_sigma) if noise.measured else None)
-        return cls(samples, measurer, noise, colour_contrast(samples) > GREY_MAX_COLOUR_CONTRAST, cfg)
+        return cls(samples, measurer, noise, colour_contrast(samples) > GREY_MAX_COLOUR_CONTRAST, cfg, base, renders)
 
     @property
     def atlas(self) -> Atlas:
         return self.measurer.atlas
 
-    def simulator(self, render: Render, name: str = "model") -> Atlas:
-        """Measure ``render``'s atlas on the same pairs (with the views' noise), as view-set ``name``."""
+    def simulator(self, render: Render, name: str = "model", renders: list[tuple[torch.Tensor, torch.Tensor]] | None = None) -> Atlas:
+        """Measure ``render``'s atlas on the same pairs (with the views' noise), as view-set ``name`` (``renders``: its
+        views of every pair, when rendered already)."""
         noise = (self.noise.shot_var, self.noise.read_sigma) if self.noise.measured else None
-        self.measurer.measure(name, rendered_views(render, self.samples, noise, self.cfg.seed), noise)
+        renders = renders if renders is not None else render_all(render, self.samples)
+        self.measurer.measure(name, rendered_views(renders, noise, self.cfg.seed), noise)
         return self.atlas
 
     def signatures(self, model: str = "model") -> dict[str, Signature]:
@@ -110,5 +121,5 @@ class Measurement:
 
     def of_model(self, model: BaseModel, name: str = "model") -> dict[str, Signature]:
         """Measure ``model``'s atlas as view-set ``name`` (again, when it was) and read every signature against it."""
-        self.simulator(lambda s: model.render(s.batch, s.field), name)
+        self.simulator(lambda s: model.render(s.batch, s.field), name, self.base_renders if model is self.base else None)
         return self.signatures(name)

@@ -55,7 +55,8 @@ def flat_pixels(images: tuple[Tensor, ...], use: Tensor, cfg: Flatness) -> Tenso
     return out
 
 
-def flat_lr_noise(samples: list[Sample], cfg: Flatness, base: BaseModel | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def flat_lr_noise(samples: list[Sample], cfg: Flatness, base: BaseModel | None = None,
+                  predictions: list[tuple[Tensor, Tensor]] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     r"""Per pair: the white-noise variance samples of the views in flat regions, and their intensities.
 
     Where the views are flat over a ``noise_flat_window_px`` window, their difference :math:`d = L - R` is
@@ -82,14 +83,17 @@ def flat_lr_noise(samples: list[Sample], cfg: Flatness, base: BaseModel | None =
     """
     var_by_pair: dict[str, list[Tensor]] = {}
     int_by_pair: dict[str, list[Tensor]] = {}
-    for s in samples:
+    for k, s in enumerate(samples):
         b = s.batch
         d = b.left - b.right
         if base is None:
             flat = flat_pixels((b.sharp,), b.valid[:, 0], cfg)
         else:
-            with torch.no_grad():
-                pl, pr = base.render(b, s.field)
+            if predictions is not None:
+                pl, pr = predictions[k]
+            else:
+                with torch.no_grad():
+                    pl, pr = base.render(b, s.field)
             flat = flat_pixels((pl, pr), s.score[:, 0] & b.valid[:, 0], cfg)
             d = d - (pl - pr)
         v = white_part(d) ** 2 / WHITE_NOISE_GAIN
@@ -137,12 +141,14 @@ class NoiseMeasure:
     note: str = ""
 
 
-def measure_noise(base: BaseModel, samples: list[Sample], cfg: DiagnoseConfig) -> NoiseMeasure:
+def measure_noise(base: BaseModel, samples: list[Sample], cfg: DiagnoseConfig,
+                  predictions: list[tuple[Tensor, Tensor]] | None = None) -> NoiseMeasure:
     r"""The views' white noise from :func:`flat_lr_noise` (flatness and the L - R signal predicted by ``base``):
     per pixel :math:`z = \hat\sigma^2 / \sigma^2_{nom}(I)`, the pooled robust variance ratio and the noise model
     ``var = shot_var I + read_sigma^2`` (:func:`dp5k_common.sensor_noise.noise_model_fit`), with a bootstrap over
-    pairs of each pair's own fit weighted by its samples (:func:`noise_model_draws`)."""
-    var, inten = flat_lr_noise(samples, FLAT, base)
+    pairs of each pair's own fit weighted by its samples (:func:`noise_model_draws`). ``predictions``: ``base``'s views of
+    ``samples``, when they are rendered already."""
+    var, inten = flat_lr_noise(samples, FLAT, base, predictions)
     if sum(v.size for v in var) < MIN_NOISE_SAMPLES:
         return NoiseMeasure(False, note="too few flat valid pixels to measure noise")
     nominal = [cfg.nominal_shot_var * np.maximum(i, 0) + cfg.nominal_read_sigma**2 for i in inten]

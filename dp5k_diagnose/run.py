@@ -196,8 +196,8 @@ def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig, step: Callable[[str
     t["atlas"] = time.perf_counter()
     held = HeldOut(inp.samples(inp.splits["held"]), cfg.tile_px, cfg.n_boot, cfg.seed)
     naming = name_causes(base, first, lambda m: meas.of_model(m, "extended"), inp.fit, held, cfg, step)
-    if naming.steps and "extended" not in meas.atlas.names or naming.steps and naming.model is not naming.steps[-1].model:
-        naming.signatures = meas.of_model(naming.model, "extended")  # the final model's atlas, after the check
+    if naming.steps and naming.model is not naming.steps[-1].model:  # the check given the others dropped a cause
+        naming.signatures = meas.of_model(naming.model, "extended")
     t["name"] = time.perf_counter()
     step("measuring the gain on the held-out pairs")
     extended = naming.model
