@@ -9,7 +9,7 @@ atlases that differ only in noise.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -89,6 +89,8 @@ class Measurement:
     base_renders: list[tuple[torch.Tensor, torch.Tensor]] | None = None
     """The base model and its renders of every pair: the noise is measured against them and the simulator's atlas of
     the base model is measured from them (rendered once)."""
+    last_renders: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = field(default_factory=dict)
+    """Per view-set, the renders its atlas was last measured from."""
 
     @classmethod
     def of(cls, samples: Sequence[Sample], base: BaseModel, cfg: DiagnoseConfig) -> "Measurement":
@@ -108,8 +110,15 @@ class Measurement:
         views of every pair, when rendered already)."""
         noise = (self.noise.shot_var, self.noise.read_sigma) if self.noise.measured else None
         renders = renders if renders is not None else render_all(render, self.samples)
+        self.last_renders[name] = renders
         self.measurer.measure(name, rendered_views(renders, noise, self.cfg.seed), noise)
         return self.atlas
+
+    def noise_against(self, model: BaseModel, name: str = "extended") -> NoiseMeasure:
+        """The views' noise measured against ``model``, whose atlas was last measured as view-set ``name`` (its renders
+        are reused): the named causes leave less structure in the flat regions' L - R than the base model does."""
+        renders = self.last_renders.get(name)
+        return measure_noise(model, self.samples, self.cfg, renders)
 
     def signatures(self, model: str = "model") -> dict[str, Signature]:
         """Every effect's signature, measured minus ``model``'s atlas."""

@@ -287,7 +287,7 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
             continue
         g = tr.gain
         suspects.append({"name": e, **_gain_json(g), "signature": tr.sig.to_json(cfg.alpha),
-                         "why": "its signature differs from the simulator's, but the model extended by it does not predict the "
+                         "why": "Its signature differs from the simulator's, but the model extended by it does not predict the "
                                 f"held-out pairs better (PSNR gain {g['gain_db']:+.3f} dB, 95 % CI [{g['gain_ci_db'][0]:+.3f}, "
                                 f"{g['gain_ci_db'][1]:+.3f}]; {MIN_GAIN_DB:g} dB and an interval above 0 name a cause)"})
     naming = Naming(steps, model, sigs, first, suspects=suspects, trace=trace)

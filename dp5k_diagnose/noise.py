@@ -169,22 +169,33 @@ INTERVAL_LEVEL = 0.95
 """Level of every parameter interval diagnose reports."""
 
 
+RATIO_BINS = np.linspace(-12.0, 8.0, 801)
+"""Bins of ln(v / nominal) for the variance ratio's bootstrap (0.025 wide: the median within 2.5 %)."""
+
+
 def noise_model_draws(var: list[np.ndarray], inten: list[np.ndarray], nominal: list[np.ndarray], seed: int = 0) -> np.ndarray:
-    """(NOISE_BOOT, 3) bootstrap draws over pairs of (shot_var, read_sigma, variance_ratio): each pair's own noise
-    model fitted once (:func:`noise_model_fit`), the resamples' weighted means (weights: the pairs' flat samples);
-    empty with fewer than 2 pairs with samples enough to fit."""
-    fits, weights = [], []
-    for v, i, n in zip(var, inten, nominal):
-        if v.size >= MIN_PAIR_NOISE_SAMPLES:
-            rho, coef = noise_model_fit(v, i, n)
-            fits.append((max(coef[0], 0.0), max(coef[1], 0.0), rho))
-            weights.append(v.size)
-    if len(fits) < 2:
+    """(NOISE_BOOT, 3) bootstrap draws over pairs of (shot_var, read_sigma, variance_ratio); empty with fewer than 2
+    pairs that hold noise samples.
+
+    The ratio is the pooled robust ratio (the median of every sample's ``v / nominal`` over that of chi^2_1) of each
+    resample, read off the pairs' histograms of ln(v / nominal) summed with the resample's counts. shot_var and
+    read_sigma are the resample's weighted means of each pair's own line (pairs of at least
+    :data:`MIN_PAIR_NOISE_SAMPLES` samples), as the report's intervals."""
+    used = [k for k, v in enumerate(var) if v.size >= MIN_PAIR_NOISE_SAMPLES]
+    if len(used) < 2:
         return np.zeros((0, 3))
-    f, w = np.array(fits), np.array(weights, dtype=np.float64)
+    hists = np.stack([np.histogram(np.log(np.maximum(var[k] / nominal[k], 1e-30)), RATIO_BINS)[0] for k in used]).astype(np.float64)
+    lines = np.array([noise_model_fit(var[k], inten[k], nominal[k])[1] for k in used])  # (P, 2): shot_var, read_sigma^2
+    sizes = np.array([var[k].size for k in used], dtype=np.float64)
     rng = np.random.default_rng(seed)
-    counts = rng.multinomial(len(f), np.full(len(f), 1.0 / len(f)), size=NOISE_BOOT) * w[None]  # (B, P)
-    m = counts @ f / counts.sum(1, keepdims=True)  # (B, 3): shot_var, read_sigma^2, ratio
-    return np.stack([m[:, 0], np.sqrt(m[:, 1]), m[:, 2]], 1)
+    counts = rng.multinomial(len(used), np.full(len(used), 1.0 / len(used)), size=NOISE_BOOT).astype(np.float64)  # (B, P)
+    cum = np.cumsum(counts @ hists, axis=1)  # (B, bins)
+    half = cum[:, -1:] / 2
+    j = (cum < half).sum(1)
+    centres = (RATIO_BINS[:-1] + RATIO_BINS[1:]) / 2
+    ratio = np.exp(centres[np.clip(j, 0, len(centres) - 1)]) / MEDIAN_CHI2_1
+    w = counts * sizes[None]
+    m = w @ np.maximum(lines, 0.0) / w.sum(1, keepdims=True)
+    return np.stack([m[:, 0], np.sqrt(m[:, 1]), ratio], 1)
 
 

@@ -26,7 +26,7 @@ from .data import DiagnoseInput, Sample, auto_fit_pairs, read_input
 from .explain import explanation
 from .fitting import fit_base
 from .gain import gain_report, pair_metrics_by_mask
-from .measure import Measurement
+from .measure import Measurement, noise_signature
 from .naming import HeldOut, Naming, name_causes, targets_of
 from .signatures import Signature
 
@@ -202,9 +202,12 @@ def _diagnose_base(dataset: str | Path, cfg: DiagnoseConfig, step: Callable[[str
     step("measuring the gain on the held-out pairs")
     extended = naming.model
     causes = cause_entries(naming, held, cfg)
-    if first["noise"].differs(cfg.alpha) and "noise" in cfg.effects:
+    if naming.steps:  # against the final model: the named causes leave less structure in the flat regions' L - R
+        meas.noise = meas.noise_against(naming.model)
+        naming.signatures["noise"] = noise_signature(meas.noise, cfg)
+    if naming.signatures["noise"].differs(cfg.alpha) and "noise" in cfg.effects:
         extended = with_noise(extended, meas)
-        causes.append(noise_entry(meas, first["noise"], len(causes) + 1, causes[-1]["cumulative_gain_db"] if causes else 0.0))
+        causes.append(noise_entry(meas, naming.signatures["noise"], len(causes) + 1, causes[-1]["cumulative_gain_db"] if causes else 0.0))
     before = pair_metrics_by_mask(lambda s: base.render(s.batch, s.field), held.samples)
     after = before if extended is base else pair_metrics_by_mask(lambda s: extended.render(s.batch, s.field), held.samples)
     gain = gain_report(before["predictable"], after["predictable"], inp.held_split, cfg.n_boot, cfg.seed, "predictable")
