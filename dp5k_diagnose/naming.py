@@ -229,6 +229,10 @@ MAX_TRIES = 2
 """An effect whose signature differs is fitted in at most this many rounds before it is left a suspect (a cause can
 mask another until it is in the model, so one failure is not final)."""
 
+RETRY_GROWTH = 1.5
+"""... but tried again only when its signature's strength grew this much since it failed: what masked it is then in
+the model. A signature that stays where it was (a renderer's small mismatch) is not refitted round after round."""
+
 
 @dataclass
 class _Trial:
@@ -253,8 +257,11 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
     last: dict[str, _Trial] = {}
     trace: list[dict[str, Any]] = []
     while len(steps) < cfg.max_causes:
+        def retry(e: str, s: Signature) -> bool:
+            return e not in last or (tries[e] < MAX_TRIES and s.strength() >= RETRY_GROWTH * last[e].sig.strength())
+
         cands = sorted((s for e, s in sigs.items() if e != "noise" and e in cfg.effects and e not in {x.name for x in steps}
-                        and tries.get(e, 0) < MAX_TRIES and s.differs(cfg.alpha)), key=lambda s: -s.strength())
+                        and retry(e, s) and s.differs(cfg.alpha)), key=lambda s: -s.strength())
         if not cands:
             break
         trials = []
