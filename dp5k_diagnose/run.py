@@ -17,7 +17,7 @@ import torch
 from dp5k_common.dataset import SHARP_F_NUMBER
 from dp5k_common.effects import NO_EFFECT
 from dp5k_common.progress import progress as progress_bar
-from dp5k_common.software import software_versions
+from dp5k_common.software import PROVENANCE_KEY, provenance, software_versions
 from neural_dp.registry import BaseModel, Noise, SimulatorSpec, clustered_intervals, lm_fit, model_to_spec
 
 from .atlas import Atlas
@@ -133,6 +133,7 @@ class Diagnosis:
             "timings_s": self.timings_s,
             "sharp_reading": self.sharp_reading.to_json(),
             "software": software_versions(),
+            PROVENANCE_KEY: provenance(),
         }
 
 

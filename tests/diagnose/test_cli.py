@@ -73,6 +73,7 @@ def test_cli_diagnose_writes_report_json_and_md(tmp_path: Path) -> None:
     # which libraries computed these numbers: they change what is named across releases (docs/diagnose.md)
     import numpy, torch
     assert rep["software"]["numpy"] == numpy.__version__ and rep["software"]["torch"] == torch.__version__
+    assert "diagnose" in rep["provenance"]["command"] and rep["provenance"]["dp5k"]  # what wrote it
     assert f"numpy {numpy.__version__}" in md
 
 
