@@ -20,7 +20,8 @@ class DiagnoseConfig:
         nominal_shot_var, nominal_read_sigma: the noise a healthy sensor is expected to show in the views (linear
             units: variance = shot_var I + read_sigma^2); only noise beyond it is the ``noise`` effect.
         noise_min_ratio: the views' noise variance over the nominal from which ``noise`` is named (1.5).
-        fit_pairs: at most this many train pairs' crops fit the models (None: every train pair).
+        fit_pairs: at most this many train pairs' crops fit the models (None: every train pair); the default is what
+            ``--fit-pairs auto`` gives (the atlas reads every pair whatever it is).
         crop_px: side of the fit crops (whole images when smaller).
         crops_per_pair: crops per fit pair when the images are larger than ``crop_px``.
         base_lm_iters: Levenberg-Marquardt iterations of the base model's own fit (rim softness, gain, pixel
@@ -42,7 +43,7 @@ class DiagnoseConfig:
     nominal_shot_var: float = 2.0e-5
     nominal_read_sigma: float = 1.0e-3
     noise_min_ratio: float = 1.5
-    fit_pairs: int | None = None
+    fit_pairs: int | None = 8
     crop_px: int = 96
     crops_per_pair: int = 2
     base_lm_iters: int = 12

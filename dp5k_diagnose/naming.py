@@ -226,11 +226,12 @@ Remeasure = Callable[[BaseModel], dict[str, Signature]]
 
 
 MAX_TRIES = 2
-"""An effect whose signature differs is fitted in at most this many rounds before it is left a suspect (a cause can
-mask another until it is in the model, so one failure is not final)."""
+"""A candidate that did not gain is fitted in at most this many rounds before it is left a suspect (a cause can mask
+another until it is in the model, so one failure is not final). A candidate that gained but lost to a better one is
+fitted again in the next round, on top of it."""
 
 RETRY_GROWTH = 1.5
-"""... but tried again only when its signature's strength grew this much since it failed: what masked it is then in
+"""... and after a failure tried again only when its signature's strength grew this much: what masked it is then in
 the model. A signature that stays where it was (a renderer's small mismatch) is not refitted round after round."""
 
 
@@ -253,12 +254,15 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
     sigs = first
     model = base
     steps: list[Step] = []
-    tries: dict[str, int] = {}
+    failed: dict[str, _Trial] = {}  # the last trial of each candidate that did not gain
+    fails: dict[str, int] = {}
     last: dict[str, _Trial] = {}
     trace: list[dict[str, Any]] = []
     while len(steps) < cfg.max_causes:
         def retry(e: str, s: Signature) -> bool:
-            return e not in last or (tries[e] < MAX_TRIES and s.strength() >= RETRY_GROWTH * last[e].sig.strength())
+            """Tried again unless it failed: as often as it gained but lost to a better candidate, once more after
+            a failure when its signature grew (:data:`RETRY_GROWTH`)."""
+            return e not in failed or (fails[e] < MAX_TRIES and s.strength() >= RETRY_GROWTH * failed[e].sig.strength())
 
         cands = sorted((s for e, s in sigs.items() if e != "noise" and e in cfg.effects and e not in {x.name for x in steps}
                         and retry(e, s) and s.differs(cfg.alpha)), key=lambda s: -s.strength())
@@ -274,7 +278,9 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
             tr = _Trial(sig, ext, held.gain(model, ext), time.perf_counter() - t0)
             trials.append(tr)
             last[sig.effect] = tr
-            tries[sig.effect] = tries.get(sig.effect, 0) + 1
+            if not confirmed(tr.gain):
+                failed[sig.effect] = tr
+                fails[sig.effect] = fails.get(sig.effect, 0) + 1
         ok = [tr for tr in trials if confirmed(tr.gain)]
         trace.append({"candidates": [{"effect": tr.sig.effect, "strength": tr.sig.strength(), **_gain_json(tr.gain),
                                       "confirmed": confirmed(tr.gain)} for tr in trials]})
