@@ -38,8 +38,8 @@ class DemoScale:
         crop: training crop in px.
         base_channels: channels of the U-Net's first level (the paper's 64 only at the paper scale: the demo
             trains on the CPU for a few epochs, where a narrower network learns as much (at the small scale 16
-            channels matched the 64-channel network's Table 2 to the third digit, 2026-11-27) and every stage
-            that runs it, train, evaluate, diagnose's fine-tuning and synthesize, costs a fraction).
+            channels match the 64-channel network's Table 2 to the third digit) and every stage that runs it,
+            train, evaluate, diagnose's fine-tuning and synthesize, costs a fraction).
         eval_fit_pairs: training pairs the base model is fitted on before ``evaluate`` compares it.
         diag_scenes: scenes of the hidden-effect dataset (each gives one pair per camera and f-number).
         diag_fit_pairs: training pairs ``diagnose`` fits on (``--fit-pairs``; the other train pairs join the

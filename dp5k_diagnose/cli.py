@@ -39,7 +39,7 @@ def parse_fit_pairs(text: str, dataset: Path, auto) -> int | None:
 @out_option("Report folder, replaced on each run.", required=False, default_text="DATASET/diagnose-<simulator>")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds crop positions and the bootstrap.")
 @click.option("--fit-pairs", default="auto", show_default=True, metavar="auto|all|N",
-              help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs and val is not empty, else 6.")
+              help="Training pairs used to fit: N, all, or auto = all where train has at most 8 pairs, else 8.")
 @click.option("--nominal-noise", default="2e-5,1e-3", show_default=True, metavar="SHOT_VAR,READ_SIGMA",
               help="The sensor's expected view noise in linear units (variance = SHOT_VAR * I + READ_SIGMA^2); only noise beyond it is the 'noise' effect.")
 @click.option("--neural-steps", default=FinetuneConfig.steps, show_default=True, type=click.IntRange(1),

@@ -69,8 +69,8 @@ def teardown(info: RankInfo | None = None) -> None:
     """Leave the process group. With ``info`` (a run that ended normally on every rank), first free what is
     unreachable (a DistributedDataParallel wrapper's reducer, while the group it uses still exists) and wait at
     a barrier, so that no rank destroys its group while another is still talking to it: a rank that left
-    first is the likely cause of the other's abort at exit that CI saw once in the two-rank gloo test
-    (2026-12-05: "terminate called without an active exception", SIGABRT, after both ranks had trained).
+    first can make the other abort at exit in the two-rank gloo test ("terminate called without an active
+    exception", SIGABRT, after both ranks had trained).
     Without ``info`` (an error on this rank) the group is destroyed at once: a barrier could wait for a rank
     that is gone (torchrun then stops the other ranks)."""
     if not (dist.is_available() and dist.is_initialized()):

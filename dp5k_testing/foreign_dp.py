@@ -281,8 +281,8 @@ def render_views(scene: ForeignScene, o: ForeignOptics, planted: Planted, sampli
     # off axis the split line moves (microlens offset): split = 1.2 a (-x_n) of the radius, rendered at 9 field
     # bands (x_n = -1, -0.75, ..., 1) with each pixel's light shared linearly between its two bracketing bands, so
     # that the split (and each view's share of the light, about 1 + 4 split / pi) changes smoothly across the
-    # field. Until 2026-11-27 each pixel took its nearest band: a staircase whose brightness steps of about 10 %
-    # at the band edges no lens makes, and which no smooth model of the effect can follow.
+    # field: a pixel that took its nearest band would make a staircase whose brightness steps of about 10 % at
+    # the band edges no lens makes, and which no smooth model of the effect can follow.
     band_t = np.clip((xn + 1) * 4, 0, 8)
     band_lo = np.minimum(np.floor(band_t), 7).astype(np.int64)
     band_w = band_t - band_lo  # the upper band's share of the pixel's light
