@@ -26,6 +26,7 @@ from dp5k_capture.ptp.transport import UsbTransport
 from dp5k_capture.sim.eos_body import SimulatedEOS
 from dp5k_capture.sim.usb_backend import SimUsbBackend
 from dp5k_capture.sim.usb_device import SimUsbPtpDevice
+from run_info import record_result
 
 
 class _BigFile:
@@ -136,10 +137,14 @@ def main_() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip() or "?"
     print(f"{datetime.datetime.now().isoformat(timespec='seconds')}  commit {commit}  {os.cpu_count()} cores")
     print(f"{'benchmark':<52} {'value':>12}  unit       load (1 min)")
+    rows = []
     for bench in (bench_download, bench_events, bench_scene, bench_served_scene):
         out = bench()
         for name, value, unit in out if isinstance(out, list) else [out]:
             print(f"{name:<52} {value:>12.1f}  {unit:<10} {os.getloadavg()[0]:.1f}")
+            rows.append([name, f"{value:.1f}", unit, f"{os.getloadavg()[0]:.1f}"])
+    record_result("speed-capture", "Capture layer: PTP download, event parsing, a simulated scene",
+                  ["benchmark", "value", "unit", "load (1 min)"], rows)
 
 
 if __name__ == "__main__":

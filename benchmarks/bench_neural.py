@@ -53,6 +53,7 @@ from neural_dp.model import ModelConfig
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
 from neural_dp.synthesize import SynthConfig, load_frame, synthesize
 from neural_dp.train import forward_fn, loss_fn
+from run_info import device_suffix, recording
 
 ROOT = Path(__file__).resolve().parents[1]
 PARTS = ("read", "inference", "untiled", "train", "synth")
@@ -296,4 +297,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    parts = sys.argv[sys.argv.index("--parts") + 1].replace(",", "-") if "--parts" in sys.argv[:-1] else ""
+    with recording(f"speed-neural{device_suffix(sys.argv)}{'-' + parts if parts else ''}", "Neural DP at paper scale: tiled inference, training, synthesis",
+                   enabled="--quick" not in sys.argv and "--_child" not in sys.argv):
+        raise SystemExit(main())

@@ -42,6 +42,7 @@ import numpy as np
 
 from dp5k_process.graycode import GrayCodeConfig, decode_graycode, opencv_patterns
 from dp5k_testing.procam_synth import PlaneScene, look_at_rig, render_projection, world_points
+from run_info import recording
 
 
 def _true_proj(scene, proj, cam):
@@ -338,14 +339,17 @@ def main() -> None:
     print(stamp() + "\n")
     with tempfile.TemporaryDirectory() as d:
         if not args.skip_decode:
-            part_a(Path(d) / "a")
+            with recording("speed-process-decode", "Processing: Gray-code decoding, dp5k against OpenCV contrib"):
+                part_a(Path(d) / "a")
         if args.filter_only:
             filter_comparison(args.keep / "raw" / args.scene)
         elif not args.skip_e2e:
-            part_b(args.scale, Path(d) / "b", args.scene, args.keep, compare=not args.skip_filter)
+            with recording(f"speed-process-{args.scale}", f"Processing: one {args.scene} scene at {args.scale} scale against the read floor"):
+                part_b(args.scale, Path(d) / "b", args.scene, args.keep, compare=not args.skip_filter)
         if not args.skip_filter_size:
             w, h = (int(v) for v in args.filter_size.lower().split("x"))
-            part_c((w, h))
+            with recording("speed-process-filter", f"Processing: the outlier filter alone at {w} x {h}"):
+                part_c((w, h))
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ Usage::
     python benchmarks/bench_simulators.py [--device cpu|cuda] [--peer-size 1680x1120] [--dataset DIR]
         [--simulators disk,butterworth,raytrace,base] [--no-neural] [--quick]
 
-Prints a Markdown table (docs/simulators.md keeps the last run's numbers); every row carries the date,
+Prints a Markdown table (recorded in benchmarks/results/, shown in docs/results.md); every row carries the date,
 the machine's 1-minute load average and the git commit. The peers' scene is the first pair of ``--dataset``
 (e.g. one studio pair at 1680 x 1120, as ``dp5k evaluate --max-pairs 1`` times it), or else synthetic: a
 textured image, a depth ramp from 1 m to 10 m focused at 2 m, and the DP5K optics (85 mm, f/1.8, 36 mm
@@ -38,6 +38,7 @@ from dp5k_learn.losses import dp_loss
 from neural_dp.model import ModelConfig
 from neural_dp.registry import PEERS, get_simulator
 from neural_dp.simulators.neural import NeuralDPSimulator, model_inputs
+from run_info import device_suffix, recording
 
 
 def scene(W: int, H: int, device: str, seed: int = 0) -> DPBatch:
@@ -207,4 +208,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recording(f"speed-simulators{device_suffix(sys.argv)}", "Simulators: seconds per image, Neural DP inference and training",
+                   enabled="--quick" not in sys.argv and "--_neural_child" not in sys.argv):
+        raise SystemExit(main())

@@ -32,6 +32,7 @@ import dp5k_studio.studio as studio_mod
 import dp5k_testing.sim_session as sim_session
 from dp5k_studio import LensSetting, make_dataset, make_rig, make_scene, render_dp
 from dp5k_studio.render import view_geometry
+from run_info import record_result
 
 F_NUMBERS = (1.8, 2.0, 2.8, 4.0, 5.6)
 """The paper's five DP apertures."""
@@ -117,13 +118,22 @@ def bench_session(scale: str, scene: str, progress: bool = False) -> None:
     print(f"{len(files)} raw frames of {size[0]} x {size[1]}, {n_bytes / 1e9:.2f} GB; "
           f"peak memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB; after: {stamp()}")
     print("\n| stage | calls | wall s | CPU s |\n|---|---|---|---|")
+    rows = []
     for name in dict.fromkeys(n for _, _, n in patches):
         print(f"| {name} | {clock.calls[name]} | {clock.wall[name]:.1f} | {clock.cpu[name]:.1f} |")
+        rows.append([name, clock.calls[name], f"{clock.wall[name]:.1f}", f"{clock.cpu[name]:.1f}"])
     rest_w, rest_c = wall - sum(clock.wall.values()), cpu - sum(clock.cpu.values())
     print(f"| the rest (radiance, diffraction, focus, board, manifest) | | {rest_w:.1f} | {rest_c:.1f} |")
     print(f"| **session total** | | **{wall:.1f}** | **{cpu:.1f}** |")
     floor = clock.wall["writing the DNG files (floor)"]
     print(f"\nsession / floor (writing the raw files): {wall / max(floor, 1e-9):.1f} x; target: under 600 s wall at paper scale")
+    rows += [["the rest (radiance, diffraction, focus, board, manifest)", "", f"{rest_w:.1f}", f"{rest_c:.1f}"],
+             ["**session total**", "", f"**{wall:.1f}**", f"**{cpu:.1f}**"]]
+    record_result(f"speed-studio-session-{scale}", f"Studio: a simulated session, scene {scene}, {scale} scale",
+                  ["stage", "calls", "wall s", "CPU s"], rows,
+                  notes=f"{len(files)} raw frames of {size[0]} x {size[1]}, {n_bytes / 1e9:.2f} GB; peak memory "
+                        f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB; {wall / max(floor, 1e-9):.1f} x "
+                        "the floor of writing the raw files; target: under 600 s wall at paper scale.")
 
 
 def bench_pair(size: tuple[int, int], scene_name: str, f_number: float, supersample: int) -> tuple[float, float, float]:
@@ -159,17 +169,23 @@ def main() -> None:
     if a.sizes != "none":
         print(f"\nB. one DP pair, scene {a.scene}, f/{a.f_number}, supersample {a.supersample}: {stamp()}")
         print(f"\n| size | Mpx | geometry s | DP pair s | wall s | CPU s | Mpx/s |\n|---|---|---|---|---|---|---|")
+        rows = []
         for text in a.sizes.split(","):
             W, H = (int(v) for v in text.split("x"))
             g, d, cpu = bench_pair((W, H), a.scene, a.f_number, a.supersample)
             mpx = W * H / 1e6
             print(f"| {W} x {H} | {mpx:.2f} | {g:.2f} | {d:.2f} | {g + d:.2f} | {cpu:.2f} | {mpx / (g + d):.2f} |")
+            rows.append([f"{W} x {H}", f"{mpx:.2f}", f"{g:.2f}", f"{d:.2f}", f"{g + d:.2f}", f"{cpu:.2f}", f"{mpx / (g + d):.2f}"])
+        record_result("speed-studio-pair", f"Studio: one DP pair (ray casting + both views), scene {a.scene}, f/{a.f_number}",
+                      ["size", "Mpx", "geometry s", "DP pair s", "wall s", "CPU s", "Mpx/s"], rows)
     if not a.skip_dataset:
         with tempfile.TemporaryDirectory() as tmp:
             c0, t0 = time.process_time(), time.perf_counter()
             make_dataset(os.path.join(tmp, "ds"), scenes=3, size=(288, 192))
             print(f"\nmake_dataset: 30 pairs at 288x192 (3 scenes x 2 cameras x 5 f-numbers): "
                   f"{time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s CPU; {stamp()}")
+            record_result("speed-studio-dataset", "Studio: make_dataset, 30 pairs at 288 x 192 (3 scenes x 2 cameras x 5 f-numbers)",
+                          ["wall s", "CPU s"], [[f"{time.perf_counter() - t0:.1f}", f"{time.process_time() - c0:.1f}"]])
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ appends one line to ``OUT/results.jsonl``: planted set, named ``causes`` in orde
 seconds and machine load. Re-runs skip finished cases; datasets are deleted after each case unless ``--keep``
 (report.json is kept under ``OUT/reports/``).
 
-Strengths (docs/diagnose.md, "The confusion matrix"): ``moderate`` is each renderer's own defaults (strength 1);
+Strengths (docs/diagnose.md, "Benchmarks"): ``moderate`` is each renderer's own defaults (strength 1);
 ``near`` puts every effect near the detection limit: the strength at which its noise-free change of the views
 is :data:`NEAR_SIGNAL` of the nominal noise variance (its "oracle signal", measured on noise-free renders of
 the benchmark's size and stored in ``OUT/strengths.json``), and for ``noise`` the strength at which the views'

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,6 +24,7 @@ from dp5k_common.effects import EFFECT_NAMES
 from dp5k_diagnose.run import DiagnoseConfig, run_diagnose
 from dp5k_testing.foreign_dp import write_dataset
 from neural_dp.registry import SimulatorSpec
+from run_info import options_suffix, recording
 
 
 def main() -> None:
@@ -63,4 +65,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recording(f"diagnose-foreign-sweep{options_suffix(sys.argv[1:])}", "Diagnose on another renderer's data (foreign_dp), every effect"):
+        main()

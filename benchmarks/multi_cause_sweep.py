@@ -18,11 +18,13 @@ import datetime
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from dp5k_diagnose.run import DiagnoseConfig, auto_fit_pairs, diagnose_base
+from run_info import options_suffix, recording
 
 DEFAULT_CASES = ("lr_gain_imbalance+disparity_scale", "psf_profile+focus_offset", "disparity_scale+psf_profile",
                  "field_varying_psf+misregistration", "none")
@@ -96,4 +98,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recording(f"diagnose-multi-cause{options_suffix(sys.argv[1:])}", "Diagnose with two planted effects: every cause in order"):
+        main()

@@ -1,4 +1,4 @@
-"""Full Table-2-style comparison on studio data with realistic effects (the run docs/simulators.md reports).
+"""Full Table-2-style comparison on studio data with realistic effects (its last run: docs/results.md).
 
 Steps: render a studio dataset with planted physical effects (``dp5k studio make-dataset``), train the
 Neural DP Simulator on its train split (``dp5k train``), evaluate every simulator on the held-out test
@@ -23,6 +23,7 @@ from dp5k_studio.dataset import make_dataset  # noqa: E402  (benchmarks may use 
 from neural_dp.config import load_config
 from neural_dp.evaluate import evaluate
 from neural_dp.train import train
+from run_info import markdown_table, record_result
 
 EFFECTS = {"lr_gain_imbalance": 1.0, "psf_profile": 1.0, "disparity_scale": 1.0, "field_varying_psf": 1.0,
            "chromatic_defocus": 1.0}
@@ -63,6 +64,10 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "settings.json").write_text(json.dumps(settings, indent=2))
     print(res.table_md)
     print(json.dumps(settings, indent=2))
+    record_result("table2-studio", "Table 2 on studio data with realistic effects", *markdown_table(res.table_md),
+                  notes=f"Effects {', '.join(f'{k}={v}' for k, v in EFFECTS.items())}; {args.scenes} scenes at {W} x {H}; "
+                        f"Neural DP {args.channels} channels x {args.levels} levels, {run.steps} steps, best val SSIM "
+                        f"{run.best_val_ssim:.4f} at epoch {run.best_epoch}; dataset {t_data:.0f} s, training {t_train:.0f} s.")
     return 0
 
 

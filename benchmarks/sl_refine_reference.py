@@ -22,6 +22,7 @@ import datetime as dt
 import json
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -30,6 +31,7 @@ import numpy as np
 from dp5k_process.refine import Matches, sl_matches
 from dp5k_process.sl_depth import decode_folder, decoder_config, full_scale_of, list_images, read_stereo_yaml, sl_depth
 from dp5k_process.triangulate import TriangulationConfig
+from run_info import recording
 
 
 def reference_depth(m: Matches, K0: np.ndarray, d0: np.ndarray, K1: np.ndarray, d1: np.ndarray, baseline_m: float,
@@ -126,4 +128,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recording(f"process-sl-refine-{Path(sys.argv[1]).name if len(sys.argv) > 1 else 'run'}",
+                   "sl-depth's refinement against OpenCV's self-calibration on a real capture"):
+        main()

@@ -1,7 +1,7 @@
 """The downstream study: Tables 3 and 4 of the paper on two test sets, studio-measured
-and real (Sdirt), with the Neural DP Simulator, several seeds and 95 % intervals. docs/deblur.md reports two reduced
-runs of step 5 (``dp5k study downstream`` with smaller budgets) on the data steps 1-3 prepared, not a full run of this
-script.
+and real (Sdirt), with the Neural DP Simulator, several seeds and 95 % intervals. The figure in docs/results.md is a
+reduced run of step 5 (``dp5k study downstream`` with smaller budgets) on the data steps 1-3 prepared, not a full run
+of this script; a full run records itself there.
 
 Steps:
 
@@ -41,7 +41,7 @@ from dp5k_deblur.model import DeblurNetConfig
 from dp5k_deblur.study import PEER_SIMULATORS, StudyConfig, run_downstream
 from dp5k_studio.dataset import make_dataset
 from neural_dp.registry import ModelConfig
-from run_info import Stopwatch, machine
+from run_info import Stopwatch, machine, markdown_tables, record_result
 
 ROOT = Path(__file__).resolve().parents[1]
 SDIRT = ROOT.parent / "shared" / "data" / "sdirt-canon-r6m2"
@@ -126,6 +126,10 @@ def main() -> int:
     print((out / "study" / "tables.md").read_text())
     print("CPU seconds by stage (this process):", {k: round(v) for k, v in study["cpu_s"].items()})
     print(f"{clock}; {machine()}")
+    tables, _ = markdown_tables((out / "study" / "tables.md").read_text())
+    record_result("downstream-study", "The downstream study: Tables 3 and 4 on studio-measured and real test pairs",
+                  *tables[0], tables=[{"title": "", "columns": c, "rows": r} for c, r in tables[1:]],
+                  notes=f"Tables in order as in `{out / 'study' / 'tables.md'}`. Cost: {clock}.")
     return 0
 
 

@@ -1,6 +1,6 @@
 """The paper's Table 2 on real pairs that nobody here rendered, measured the way a user works: every simulator scored on
 held-out real Sdirt photos (Canon EOS R6 II + RF50, split by photo), the Neural DP Simulator as ``dp5k train`` makes
-it by default, with 95 % intervals (the run docs/simulators.md reports).
+it by default, with 95 % intervals (its last run: docs/results.md).
 
 Steps, each a ``dp5k`` command as a user types it:
 
@@ -40,7 +40,7 @@ import numpy as np
 from dp5k_common.dataset import DatasetReader
 from dp5k_common.io import write_bytes_atomic, write_json_atomic
 from dp5k_learn.intervals import Estimate, Resampler, verdict
-from run_info import Stopwatch, cpu_seconds, machine
+from run_info import Stopwatch, cpu_seconds, machine, markdown_table, record_result
 
 ROOT = Path(__file__).resolve().parents[1]
 SDIRT = ROOT.parent / "shared" / "data" / "sdirt-canon-r6m2"
@@ -161,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     write_bytes_atomic(out / "table2_real.md", text.encode())
     print(text)
     print(f"{clock}; {machine()}")
+    record_result("table2-real", "Table 2 on real pairs (Sdirt, split by photo)", *markdown_table(text),
+                  notes=f"{note}\n\nThe default Neural DP Simulator against the best peer ({best_peer}) and the base "
+                        f"model:\n{key_words}\n\nTraining runs:\n{runs_md}\n\nPSNR differences: {words}\n\nCost: {clock}.")
     return 0
 
 

@@ -33,3 +33,44 @@ def test_make_targets_set_up_first() -> None:
         assert rule and "setup" in rule.group(1), f"make {target} must depend on setup"
     setup = (ROOT / "scripts" / "setup.sh").read_text()
     assert "torch==2.13.0" in setup and "libusb-1.0-0" in setup and "venv" in setup
+
+
+# --------------------------------------------------------------------------- the README as a front door
+HEAD_LINES = 40
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+COMMIT = re.compile(r"\b[0-9a-f]{7,40}\b")
+TIMING = re.compile(r"\b\d+(\.\d+)?\s?(s|ms|sec|secs|seconds|min|mins|minutes|h|hours?)\b", flags=re.I)
+TOUR_STAGES = {"capture", "process", "train", "evaluate", "diagnose", "synthesize", "import"}
+
+
+def test_readme_head_holds_no_date_commit_or_timing() -> None:
+    head = "\n".join((ROOT / "README.md").read_text().splitlines()[:HEAD_LINES])
+    for name, pattern in (("date", DATE), ("commit hash", COMMIT), ("timing", TIMING)):
+        found = [m.group(0) for m in pattern.finditer(head)]
+        assert not found, f"README's first {HEAD_LINES} lines hold a {name}: {found} (figures belong in docs/results.md)"
+
+
+def tour_commands() -> list[list[str]]:
+    text = (ROOT / "README.md").read_text()
+    tour = re.search(r"^## A tour.*?(?=^## )", text, flags=re.S | re.M)
+    assert tour, "README has no '## A tour' section"
+    blocks = re.findall(r"```(?:bash|sh)?\n(.*?)```", tour.group(0), flags=re.S)
+    return [line.split() for b in blocks for line in b.splitlines() if line.split()[:1] in (["dp5k"], [".venv/bin/dp5k"])]
+
+
+def test_the_tour_runs_every_stage_with_commands_that_exist() -> None:
+    import dp5k_cli
+
+    commands = tour_commands()
+    named = {c[1] for c in commands}
+    assert named <= set(dp5k_cli.COMMANDS), f"unknown commands in the tour: {sorted(named - set(dp5k_cli.COMMANDS))}"
+    assert TOUR_STAGES <= named, f"the tour misses {sorted(TOUR_STAGES - named)}"
+    assert all("--out" in c or c[1] == "check" for c in commands), "every tour command writes to --out"
+
+
+def test_readme_picture_exists_and_is_small() -> None:
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", (ROOT / "README.md").read_text())
+    assert images, "README shows no picture"
+    for img in images:
+        path = ROOT / img
+        assert path.is_file() and path.stat().st_size < 150_000, img
