@@ -89,6 +89,8 @@ logger = logging.getLogger(__name__)
 NETWORK_CKPT = "network.pt"
 """The physics-first network's best weights (by validation SSIM); ``best.pt`` is these or the physical model."""
 REPORT = "report.json"
+MIN_CLUSTERS = 3
+"""Fewer validation scenes than this are too few to resample: the decision's bootstrap then resamples pairs."""
 
 
 def loss_mask(valid: torch.Tensor, border_px: int) -> torch.Tensor:
@@ -274,12 +276,17 @@ def decide(network: dict[str, list[float]], physical: dict[str, list[float]], cl
     per-pair validation scores; ``clusters`` group the pairs for the bootstrap (their scenes: a tile is its own)."""
     if keep not in ("better", "network", "physical"):
         raise BadInputError(f"select.keep must be better, network or physical, got {keep!r}", where="config")
+    n = len(clusters)
+    note = ""
+    if len(set(clusters)) < MIN_CLUSTERS:  # an interval over one or two scenes says nothing: resample the pairs
+        note = f"; {len(set(clusters))} scene(s), so the pairs are resampled as if independent"
+        clusters = [str(i) for i in range(n)]
     rs = Resampler(clusters, 1)
     d = rs.difference(network["psnr"], physical["psnr"])
     d_ssim = rs.difference(network["ssim"], physical["ssim"])
-    better = d.lo > 0 and d_ssim.mean >= 0
+    better = n >= 2 and d.lo > 0 and d_ssim.mean >= 0
     kept = "network" if keep == "network" or (keep == "better" and better) else "physical"
-    n = len(clusters)
+    how = how + note
     gain = f"{d.mean:+.2f} dB PSNR [{d.lo:+.2f}, {d.hi:+.2f}] and {d_ssim.mean:+.4f} SSIM"
     if kept == "network":
         why = (f"kept the network: on the {n} validation pairs ({how}) it scores {gain} against the physical model "
@@ -287,8 +294,8 @@ def decide(network: dict[str, list[float]], physical: dict[str, list[float]], cl
     elif keep == "physical":
         why = f"kept the physical model ({physics_name}) as select.keep = physical asks (the network: {gain} on the {n} validation pairs)"
     else:
-        reason = ("its PSNR gain is not resolved (the 95 % interval reaches 0)" if d.lo <= 0
-                  else "its SSIM is lower")
+        reason = ("one validation pair cannot tell" if n < 2 else
+                  "its PSNR gain is not resolved (the 95 % interval reaches 0)" if d.lo <= 0 else "its SSIM is lower")
         why = (f"kept the physical model ({physics_name}): on the {n} validation pairs ({how}) the network scores {gain}, "
                f"and {reason}; best.pt renders exactly the physical model")
     return {"kept": kept, "why": why, "psnr_gain": d.to_json(), "ssim_gain": d_ssim.to_json(), "pairs": n}

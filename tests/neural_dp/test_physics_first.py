@@ -149,6 +149,10 @@ def test_keep_the_better_decision_rule() -> None:
     assert d["kept"] == "physical" and "not resolved" in d["why"]
     assert decide(lower_ssim, phys, clusters, "better", "base", "tiles")["kept"] == "physical"
     assert decide(noisy, phys, clusters, "network", "base", "tiles")["kept"] == "network"
+    one_scene = decide(noisy, phys, ["s"] * 8, "better", "base", "val split")  # one scene: its pairs are resampled
+    assert one_scene["kept"] == "physical" and "as if independent" in one_scene["why"]
+    single = decide({"psnr": [40.0], "ssim": [0.99]}, {"psnr": [30.0], "ssim": [0.9]}, ["s"], "better", "base", "tiles")
+    assert single["kept"] == "physical" and "one validation pair" in single["why"]
 
 
 def _exact_dataset(root: Path, truth: BaseModel, n: int = 8, W: int = 48, H: int = 32) -> None:
