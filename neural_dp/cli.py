@@ -52,9 +52,14 @@ def train_command(dataset: Path, out: Path | None, config_file: Path | None, epo
     if cfg.model.prior == "physical":
         plan_holdout(dataset, cfg.select.holdout, cfg.seed)  # a dataset it cannot train on is refused before anything is touched
     result = train(dataset, run_dir, cfg, resume=prepare_run_dir(run_dir, resume, overwrite))
-    click.echo(report_run(run_dir, result))
-    if result.report.get("why"):
-        click.echo(f"{run_dir / 'best.pt'}: {result.report['why']}")
+    rep = result.report
+    if not rep:
+        click.echo(report_run(run_dir, result))
+        return
+    net = rep["network_val"]
+    click.echo(f"{run_dir}: {result.epochs_done} epoch(s), {result.steps} steps; the network's best epoch {result.best_epoch} "
+               f"(val PSNR {net['psnr']:.2f} dB, SSIM {net['ssim']:.4f}) -> {run_dir / 'network.pt'}")
+    click.echo(f"{run_dir / 'best.pt'}: {rep['why']}")
 
 
 def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str | None,

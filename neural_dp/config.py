@@ -71,8 +71,11 @@ class SelectConfig:
     holdout: float = 0.25
     """Share of the train split held out for validation when the dataset has no val split: whole source photos
     when there are several, else spatially separate tiles of the one photo (:mod:`neural_dp.holdout`)."""
+    metric: str = "psnr"
+    """The validation metric that picks the network's best epoch and stops training early: ``psnr`` or ``ssim``
+    (the paper's, which stays the choice of ``model.prior = none``)."""
     patience: int = 10
-    """Stop after this many epochs without a better validation SSIM (0 = never stop early)."""
+    """Stop after this many epochs without a better validation score (0 = never stop early)."""
     keep: str = "better"
     """``better``: keep the network only if it beats the physical model on the validation pairs (PSNR gain with a
     95 % interval above 0, SSIM not lower); else ``best.pt`` is the physical model itself. ``network``: keep the

@@ -141,7 +141,7 @@ def pretrain(root: Path, out: Path, cfg: TrainConfig, model_cfg: ModelConfig, sp
     loop = EpochLoop(run=run, forward=forward_fn(run.net, model_cfg.coc_scale_px, sim), loss=loss_fn(sim.net.reach_px, optim.grad_weight),
                      validate=lambda: validate(sim, val_ds, info, device, cfg.data.val_pairs), model_config=asdict(model_cfg),
                      config={**cfg.to_dict(), "pretrain_renders": str(spec)}, defaults=asdict(ModelConfig()),
-                     patience=cfg.select.patience)
+                     patience=cfg.select.patience, select=cfg.select.metric)
     fresh = None if sim.physical else (lambda: init_view_gain(sim, train_ds))
     run_epochs(loop, out, resume=True, on_fresh_start=fresh, desc="pre-train")
     return load_checkpoint(out / "best.pt", map_location=device)["model"]

@@ -10,7 +10,7 @@
 3. optionally pre-train on calibrated renders (:mod:`neural_dp.pretrain`, ``pretrain.simulator``);
 4. train the physics-first network (:mod:`neural_dp.model`: it starts as that physical model, bit for bit) on the
    train pairs with DP-geometry augmentations (:mod:`neural_dp.augment`), validating every epoch and stopping early
-   (``select.patience``); its best weights go to ``network.pt``;
+   (``select.patience``); its best weights by validation PSNR (``select.metric``) go to ``network.pt``;
 5. **keep the better** (``select.keep``): ``best.pt`` is the network only if it beats the physical model on the
    validation pairs (PSNR gain with a 95 % bootstrap interval above 0, SSIM not lower); otherwise ``best.pt`` is
    the network at its physics-equal initialisation, which ``--simulator neural:RUN/best.pt`` renders exactly as
@@ -87,7 +87,7 @@ from .simulators.neural import NeuralDPSimulator, build_prior, model_inputs
 logger = logging.getLogger(__name__)
 
 NETWORK_CKPT = "network.pt"
-"""The physics-first network's best weights (by validation SSIM); ``best.pt`` is these or the physical model."""
+"""The physics-first network's best weights (by ``select.metric``); ``best.pt`` is these or the physical model."""
 REPORT = "report.json"
 MIN_CLUSTERS = 3
 """Fewer validation scenes than this are too few to resample: the decision's bootstrap then resamples pairs."""
@@ -336,7 +336,7 @@ def _train_physical(root: Path, out: Path, cfg: TrainConfig, holdout: Holdout, i
                      loss=loss_fn(sim.net.reach_px, cfg.optim.grad_weight),
                      validate=lambda: validate(sim, val_ds, info, device, cfg.data.val_pairs), model_config=asdict(model_cfg),
                      config=cfg.to_dict(), defaults=asdict(ModelConfig()), patience=cfg.select.patience,
-                     best_name=NETWORK_CKPT)
+                     best_name=NETWORK_CKPT, select=cfg.select.metric)
     result = run_epochs(loop, out, resume=resume, on_epoch_end=on_epoch_end,
                         on_fresh_start=(lambda: sim.net.load_state_dict(init)) if init is not None else None)
     net_path = out / NETWORK_CKPT
