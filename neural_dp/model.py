@@ -168,7 +168,11 @@ class UNetKPN(nn.Module):
             centre[:, k2 // 2] = 4.0
         with torch.no_grad():
             self.head.bias.copy_(bias)
-        self.view_gain = nn.Parameter(torch.full((2, 3), 1.0 if self.physical else 0.5))
+        self.view_gain = nn.Parameter(torch.full((2, 3), 0.5))
+        if self.physical:  # the sensor stage instead of constant gains: per photodiode, functions of the field
+            del self.view_gain
+            self.sensor_gain = nn.Parameter(torch.zeros(2, 3, len(FIELD_TERMS)))
+            self.sensor_xtalk = nn.Parameter(torch.zeros(2, len(FIELD_TERMS)))
         self.n_scales = int(cfg.multiscale_levels)
         if self.n_scales < 0:
             raise BadInputError(f"multiscale_levels must be >= 0, got {cfg.multiscale_levels}", where="ModelConfig")
@@ -338,12 +342,29 @@ class UNetKPN(nn.Module):
                 ks_l = mirror_by_sign(ks[..., :H, :W], s)
                 corr_l = corr_l + correction(box_prefilter(pl, d), ks_l, d)
                 corr_r = corr_r + correction(box_prefilter(pr, d), flip_lr(ks_l), d)
-        flipped = mirrored > 0.5
-        g_l = self.view_gain[0].view(1, 3, 1, 1)
-        g_r = self.view_gain[1].view(1, 3, 1, 1)
-        gain_l, gain_r = torch.where(flipped, g_r, g_l), torch.where(flipped, g_l, g_r)
-        res_l, res_r = s * ra + (1 - s) * rb, s * rb + (1 - s) * ra
-        return gain_l * corr_l + res_l, gain_r * corr_r + res_r
+        res_l, res_r = s * ra + (1 - s) * rb, s * rb + (1 - s) * ra  # light the kernels cannot reach: optics too
+        return self.sensor(corr_l + res_l, corr_r + res_r, field, mirrored > 0.5)
+
+    def sensor(self, left: Tensor, right: Tensor, field: Tensor, mirrored: Tensor) -> tuple[Tensor, Tensor]:
+        """The sensor stage of a physical-prior network: what belongs to the photodiodes, not to the lens, so it does
+        not turn with the CoC's sign. Each photodiode's view is ``g (1 - k) own + k other``: a per-channel gain
+        ``g = exp(p_g(x, y))`` and a crosstalk ``k = p_k(x, y)`` from the other photodiode, each a quadratic in the
+        field position (:data:`FIELD_TERMS`; all coefficients start at 0: the identity, exactly). An item mirrored
+        by the augmentation (``mirrored`` (B, 1, H, W) bool) shows the right photodiode as its left view at field
+        ``-x``: it gets the other photodiode's stage, evaluated there."""
+        x, y = field[:, 0:1], field[:, 1:2]
+        xm = torch.where(mirrored, -x, x)
+        terms = torch.cat([torch.ones_like(x), xm, y, xm * xm, xm * y, y * y], dim=1)  # (B, T, H, W)
+
+        def stage(v: int) -> tuple[Tensor, Tensor]:
+            g = torch.exp(torch.einsum("ct,bthw->bchw", self.sensor_gain[v], terms))
+            k = torch.einsum("t,bthw->bhw", self.sensor_xtalk[v], terms)[:, None]
+            return g, k
+
+        (g0, k0), (g1, k1) = stage(0), stage(1)
+        g_l, k_l = torch.where(mirrored, g1, g0), torch.where(mirrored, k1, k0)
+        g_r, k_r = torch.where(mirrored, g0, g1), torch.where(mirrored, k0, k1)
+        return g_l * (left + k_l * (right - left)), g_r * (right + k_r * (left - right))
 
 
 def box_prefilter(x: Tensor, d: int) -> Tensor:
@@ -408,6 +429,9 @@ def extend_multiscale(net: UNetKPN, levels: int = 2) -> UNetKPN:
 
 
 PRIORS = ("none", "physical")
+
+FIELD_TERMS = ("1", "x", "y", "x^2", "xy", "y^2")
+"""The terms of the quadratic field polynomials of a physical-prior network's sensor stage (:meth:`UNetKPN.sensor`)."""
 """What a network can start from (:attr:`ModelConfig.prior`)."""
 
 SIGN_SOFTNESS_PX = 0.5
