@@ -34,21 +34,25 @@ turn a trained single-scale network into a multi-scale one with the same output,
 **Physics first** (``ModelConfig.prior = "physical"``; what ``dp5k train`` builds by default, see
 :mod:`neural_dp.train`). The network starts from a physical simulator's views :math:`P_l, P_r` (the base model
 fitted on the train pairs, or a diagnosed model; :class:`~neural_dp.simulators.neural.NeuralDPSimulator` renders
-them) and learns only what that model gets wrong: a per-pixel affine K x K correction kernel applied to the
-physical views, per-view gains and two residual images,
+them) and learns only what that model gets wrong: what the lens does differently (a per-pixel affine K x K
+correction kernel applied to the physical views, and two residual images), then what the sensor does (per
+photodiode a gain and a crosstalk, quadratic in the field position, :meth:`UNetKPN.sensor`),
 
 .. math::
-    \check I_l = g_l \odot \Big(P_l + \sum_t k^l_t \,(S_t P_l - P_l)\Big) + A_l
+    O_l = P_l + \sum_t k^l_t \,(S_t P_l - P_l) + A_l, \qquad
+    \check I_l = g_L \odot \big((1 - c_L)\, O_l + c_L\, O_r\big)
 
 (:math:`S_t` shifts by tap ``t``; the kernel's weights are free, so a correction can sharpen, blur or shift, and
-its taps always sum to "keep the brightness"). Every head weight and bias starts at exactly 0 and the gains at
-exactly 1, so **at initialisation the output equals the physical model's bit for bit**
+its taps always sum to "keep the brightness"). Every head weight and bias and every sensor coefficient starts at
+exactly 0, so **at initialisation the output equals the physical model's bit for bit**
 (``tests/neural_dp/test_physics_first.py``). The correction respects the two symmetries of DP image formation
 (Eq. 2): the right kernel is the mirror of the left, ``k^r = hflip(k^l)``, and the **sign of the CoC** swaps the
 views (a point in front of focus sends to the left view what a point behind focus sends to the right one): the
 network sees the physical views ordered as (a, b) = (L, R) behind focus and (R, L) in front of it, with
 :math:`|C|` instead of :math:`C`, and its kernel and residuals for view a go to L behind focus and to R in front
 (``k^l = s\, k + (1 - s)\, hflip(k)``, :math:`s = (1 + \tanh(C / 0.5\,px)) / 2`, continuous through focus).
+The sensor stage does not turn with the sign: gains and crosstalk belong to the photodiodes (without it, an L/R
+imbalance learned behind focus came out on the wrong view in front of focus).
 What it learns behind focus therefore applies, mirrored, in front of it: on the Sdirt photos (train behind focus,
 test in front) the network without this structure gained on held-out tiles of its own photo and lost 2.5 dB on
 the other photo. Inputs (13 channels): sharp, :math:`P_a, P_b`, :math:`|C| / 10` px, the valid-depth mask and the
