@@ -64,6 +64,11 @@ def timed_train(real: Path, run: Path, seed: int, extra: list[str]) -> dict[str,
         dp5k("train", str(real), "--out", str(run), "--seed", str(seed), *sets)
     wall, cpu = time.perf_counter() - w, cpu_seconds() - c
     report = json.loads((run / "report.json").read_text()) if (run / "report.json").is_file() else {}
+    if not report:  # the paper's network makes no decision: its run is its best checkpoint by val SSIM
+        history = json.loads((run / "history.json").read_text())
+        best = max(history, key=lambda r: r["val_ssim"])
+        report = {"kept": "network", "why": "the paper's network, kept whatever it scores (no decision)",
+                  "best_epoch": best["epoch"], "epochs_done": len(history)}
     return {"run": str(run), "seed": seed, "set": extra, "wall_s": wall, "cpu_s": cpu, "kept": report.get("kept"),
             "why": report.get("why"), "best_epoch": report.get("best_epoch"), "epochs_done": report.get("epochs_done"),
             "validation": report.get("validation", {}).get("how")}
