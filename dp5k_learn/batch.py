@@ -12,6 +12,20 @@ from torch import Tensor
 from dp5k_common.dataset import Pair
 
 
+def frame_field(origin: tuple[int, int], full_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    """(2, H, W) float32 field coordinates (x, y) in [-1, 1] of an (W, H) ``size`` region whose top-left pixel is
+    ``origin`` (x0, y0) in a frame of ``full_size`` (W_f, H_f), the frame's centre at 0 (the convention of
+    ``neural_dp.simulators.base.field.field_coords``).
+
+    >>> frame_field((0, 0), (3, 3), (3, 1))[0].tolist()
+    [[-1.0, 0.0, 1.0]]
+    """
+    (x0, y0), (Wf, Hf), (W, H) = origin, full_size, size
+    xs = (np.arange(W, dtype=np.float64) + x0 - (Wf - 1) / 2) / max((Wf - 1) / 2, 0.5)
+    ys = (np.arange(H, dtype=np.float64) + y0 - (Hf - 1) / 2) / max((Hf - 1) / 2, 0.5)
+    return np.stack([np.broadcast_to(xs[None, :], (H, W)), np.broadcast_to(ys[:, None], (H, W))]).astype(np.float32)
+
+
 @dataclass
 class DPBatch:
     """A batch of B pairs' simulator inputs (and, when known, the measured views).
@@ -31,6 +45,14 @@ class DPBatch:
         pair_ids: the pairs' ids, length B.
         sharp_f_number: (B,) float, the f-number of ``sharp`` (params.json ``sharp_f_number``, format v1
             default 22; 0 = an all-in-focus image), or None (all 22).
+        field: (B, 2, H, W) float, where each pixel sits in its camera frame, (x, y) in [-1, 1] with the frame's
+            centre at 0 (a tile's from its ``crop_origin_px`` / ``full_image_size``; a mirrored item's x negated),
+            or None (every item is a whole frame).
+        prior_left, prior_right: (B, 3, H, W) the physical model's views of these items, when a trainer rendered
+            them beforehand (``neural_dp``: rendered once per whole pair, then cropped and augmented with the
+            item), or None (a simulator that needs them renders them).
+        mirrored: (B,) bool, items mirrored left-right with their views swapped (a training augmentation), or
+            None (none is).
     """
 
     sharp: Tensor
@@ -46,6 +68,10 @@ class DPBatch:
     right: Tensor | None = None
     pair_ids: tuple[str, ...] = ()
     sharp_f_number: Tensor | None = None
+    field: Tensor | None = None
+    prior_left: Tensor | None = None
+    prior_right: Tensor | None = None
+    mirrored: Tensor | None = None
 
     @classmethod
     def from_pairs(cls, pairs: Sequence[Pair], device: torch.device | str = "cpu") -> DPBatch:
@@ -68,6 +94,7 @@ class DPBatch:
             right=torch.stack([img(p.right) for p in pairs]).to(device),
             pair_ids=tuple(p.pair_id for p in pairs),
             sharp_f_number=torch.tensor([p.params.sharp_f_number for p in pairs], dtype=torch.float32, device=device),
+            field=torch.stack([torch.from_numpy(frame_field(*p.params.frame_geometry, p.valid.shape[::-1])) for p in pairs]).to(device),
         )
 
     def to(self, device: torch.device | str) -> DPBatch:

@@ -33,7 +33,7 @@ def training_options(config_module: str) -> Callable[[F], F]:
         click.option("--seed", type=click.IntRange(min=0), default=None, help="Override seed."),
         click.option("--set", "sets", multiple=True, metavar="SECTION.KEY=VALUE", help="Any config override; repeatable."),
         resume_option("Continue from OUT's last.pt when there is one; --no-resume refuses an OUT that holds one."),
-        overwrite_option("Start afresh in OUT, deleting an earlier run's last.pt, best.pt and history.json."),
+        overwrite_option("Start afresh in OUT, deleting an earlier run's checkpoints, history and report."),
     ]
 
     def wrap(fn: F) -> F:
@@ -80,7 +80,8 @@ def check_training_inputs(dataset: Path, init_from: Path | None = None) -> None:
         raise BadInputError("checkpoint not found", where=init_from)
 
 
-RUN_FILES = ("last.pt", "best.pt", "history.json")  # what a training run leaves in its folder (epochs.py)
+RUN_FILES = ("last.pt", "best.pt", "history.json", "network.pt", "report.json")
+"""What a training run leaves in its folder (epochs.py; ``neural_dp``'s physics-first runs add the last two)."""
 
 
 def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> bool:
@@ -95,6 +96,8 @@ def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> bool:
     if overwrite:
         for name in RUN_FILES:
             (out / name).unlink(missing_ok=True)
+        for name in RUN_FILES:  # a pre-training stage's own run (neural_dp.pretrain)
+            (out / "pretrain" / name).unlink(missing_ok=True)
         return False
     if not resume:
         refuse_earlier_run(out / "last.pt", "an earlier run's last.pt")

@@ -13,7 +13,7 @@ from torch.utils.data import Dataset
 from dp5k_common.dataset import DatasetReader, Pair
 from dp5k_common.errors import EmptySplitError
 
-from .batch import DPBatch
+from .batch import DPBatch, frame_field
 
 
 @dataclass(frozen=True)
@@ -44,15 +44,22 @@ class DPPairDataset(Dataset):
             step sees never depends on worker count, rank layout or resumption.
         length: items per epoch (0 = the number of pairs); with random crops an epoch may revisit pairs.
         cache: keep loaded pairs in memory (small datasets).
+        ids: serve these pairs of ``split`` only (e.g. a validation subset a trainer held out); default all.
 
     Item keys: sharp, left, right (3, h, w); coc_px, depth_mm (1, h, w), 0 where invalid; valid (1, h, w) bool;
-    f_number, focus_distance_mm, focal_length_mm, pixel_pitch_mm (scalars); focus_point_px (2,); pair_id.
+    f_number, focus_distance_mm, focal_length_mm, pixel_pitch_mm (scalars); focus_point_px (2,); pair_id; field
+    (2, h, w), the pixels' field coordinates in their camera frame (:func:`~dp5k_learn.batch.frame_field`).
     """
 
     def __init__(self, root: str | os.PathLike[str], split: str, crop: CropSpec | None = None, seed: int = 0,
-                 length: int = 0, cache: bool = True) -> None:
+                 length: int = 0, cache: bool = True, ids: list[str] | None = None) -> None:
         self.reader = DatasetReader(root)
         self.ids = self.reader.ids(split)
+        if ids is not None:
+            unknown = sorted(set(ids) - set(self.ids))
+            if unknown:
+                raise EmptySplitError(f"pairs not in split '{split}': {', '.join(unknown[:3])}", where=self.reader.root / "dataset.json")
+            self.ids = list(ids)
         if not self.ids:
             raise EmptySplitError(f"split '{split}' is empty", where=self.reader.root / "dataset.json")
         self.split = split
@@ -99,6 +106,10 @@ class DPPairDataset(Dataset):
 
         p = pair.params
         fy = (H - 1 - p.focus_point_px[1]) if flip else p.focus_point_px[1]
+        (ox, oy), full = p.frame_geometry
+        field = frame_field((ox + x0, oy + y0), full, (w, h))
+        if flip:
+            field = np.stack([field[0][::-1], -field[1][::-1]])  # rows reversed: y mirrored about the frame centre
         return {
             "sharp": cut(pair.sharp),
             "left": cut(pair.left),
@@ -113,13 +124,18 @@ class DPPairDataset(Dataset):
             "focus_point_px": torch.tensor([p.focus_point_px[0] - x0, fy - y0], dtype=torch.float32),
             "sharp_f_number": torch.tensor(p.sharp_f_number, dtype=torch.float32),
             "pair_id": p.pair_id,
+            "field": torch.from_numpy(np.ascontiguousarray(field)),
         }
 
 
 def collate_dp(items: list[dict[str, object]]) -> DPBatch:
-    """Stack dataset items (all of one size) into a :class:`DPBatch` on the CPU."""
+    """Stack dataset items (all of one size) into a :class:`DPBatch` on the CPU. The optional keys ``field``,
+    ``prior_left``, ``prior_right`` and ``mirrored`` fill the batch's fields of those names when every item has them."""
     def stack(key: str) -> Tensor:
         return torch.stack([it[key] for it in items])  # type: ignore[misc]
+
+    def optional(key: str) -> Tensor | None:
+        return stack(key) if all(key in it for it in items) else None
 
     return DPBatch(
         sharp=stack("sharp"), coc_px=stack("coc_px"), depth_mm=stack("depth_mm"), valid=stack("valid"),
@@ -127,4 +143,6 @@ def collate_dp(items: list[dict[str, object]]) -> DPBatch:
         focal_length_mm=stack("focal_length_mm"), pixel_pitch_mm=stack("pixel_pitch_mm"),
         focus_point_px=stack("focus_point_px"), left=stack("left"), right=stack("right"),
         pair_ids=tuple(str(it["pair_id"]) for it in items), sharp_f_number=stack("sharp_f_number"),
+        field=optional("field"), prior_left=optional("prior_left"), prior_right=optional("prior_right"),
+        mirrored=optional("mirrored"),
     )

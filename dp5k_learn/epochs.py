@@ -47,6 +47,8 @@ class TrainResult:
     epochs_done: int
     steps: int
     history: list[dict[str, float]] = field(default_factory=list)
+    report: dict[str, Any] = field(default_factory=dict)
+    """What the trainer adds about the run (``neural_dp``: the choice between network and physical model)."""
 
 
 @dataclass
@@ -61,6 +63,11 @@ class EpochLoop:
         model_config: the network's config as a dict (a resume refuses a different one).
         config: the whole run's config as a dict (stored in each checkpoint).
         defaults: ``model_config`` keys added since older checkpoints were written, at their defaults.
+        patience: stop once this many epochs in a row brought no better validation score (0 = run every epoch).
+        best_name: the file the best weights go to (``best.pt``; a trainer that chooses afterwards between them
+            and something else writes ``best.pt`` itself).
+        select: the validation metric that picks the best epoch and drives early stopping: ``"ssim"`` (the paper's)
+            or ``"psnr"``.
     """
 
     run: TrainingRun
@@ -70,6 +77,9 @@ class EpochLoop:
     model_config: dict[str, Any]
     config: dict[str, Any]
     defaults: dict[str, Any] = field(default_factory=dict)
+    patience: int = 0
+    best_name: str = "best.pt"
+    select: str = "ssim"
 
 
 def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Callable[[], None] | None = None,
@@ -89,9 +99,11 @@ def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Call
     steps_per_epoch = len(run.loader)
     run.sched.T_max = max(1, run.epochs * steps_per_epoch)
     start_epoch, step = 0, 0
-    best_ssim, best_epoch = -math.inf, -1
+    if loop.select not in ("ssim", "psnr"):
+        raise BadInputError(f"the validation metric must be ssim or psnr, got {loop.select!r}", where="config")
+    best_ssim, best_score, best_epoch = -math.inf, -math.inf, -1
     history: list[dict[str, float]] = []
-    last_path, best_path = out / "last.pt", out / "best.pt"
+    last_path, best_path = out / "last.pt", out / loop.best_name
     if resume and last_path.is_file():
         state = load_checkpoint(last_path, map_location=device)
         saved_model = state.get("model_config")
@@ -106,6 +118,7 @@ def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Call
         run.sched.T_max = max(1, run.epochs * steps_per_epoch)  # a resumed run may extend the schedule (more epochs)
         start_epoch, step = int(state["epoch"]), int(state["step"])
         best_ssim, best_epoch = float(state["best_val_ssim"]), int(state["best_epoch"])
+        best_score = float(state.get("best_val_score", best_ssim))
         history = list(state.get("history", []))
         if info.is_main:
             logger.info("resuming from %s at epoch %d (step %d)", last_path, start_epoch, step)
@@ -117,23 +130,30 @@ def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Call
     bar = progress(total=run.epochs * steps_per_epoch, initial=step, desc=desc, unit="step") if info.is_main else None
     try:
         for epoch in range(start_epoch, run.epochs):
+            if loop.patience > 0 and best_epoch > 0 and epoch - best_epoch >= loop.patience:
+                if info.is_main:
+                    logger.info("stopping after epoch %d: no better validation %s for %d epochs (best: epoch %d)",
+                                epoch, loop.select.upper(), loop.patience, best_epoch)
+                break
             run.train_ds.set_epoch(epoch)
             run.sampler.set_epoch(epoch)
-            torch.manual_seed(run.seed * 1_000_003 + epoch * 7919 + info.rank)
             run.module.train()
-            t0 = time.perf_counter()
-            loss_sum = torch.zeros(2, dtype=torch.float64, device=device)
-            samples = 0
-            for batch in run.loader:
-                batch = batch.to(device)
-                n = batch.sharp.shape[0]
-                loss = float(run.step(batch, step, loop.forward, loop.loss))
-                step += 1
-                samples += n
-                loss_sum += torch.tensor([loss * n, n], dtype=torch.float64, device=device)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(epoch=epoch + 1, loss=f"{loss:.4f}", best_ssim=f"{max(best_ssim, 0):.4f}")
+            # dropout draws from (seed, epoch, rank) only, on a forked generator: the caller's global state is left as it was
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                torch.manual_seed(run.seed * 1_000_003 + epoch * 7919 + info.rank)
+                t0 = time.perf_counter()
+                loss_sum = torch.zeros(2, dtype=torch.float64, device=device)
+                samples = 0
+                for batch in run.loader:
+                    batch = batch.to(device)
+                    n = batch.sharp.shape[0]
+                    loss = float(run.step(batch, step, loop.forward, loop.loss))
+                    step += 1
+                    samples += n
+                    loss_sum += torch.tensor([loss * n, n], dtype=torch.float64, device=device)
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(epoch=epoch + 1, loss=f"{loss:.4f}", best_ssim=f"{max(best_ssim, 0):.4f}")
             loss_sum = D.all_reduce_sum(loss_sum, info)
             elapsed = time.perf_counter() - t0
             val = loop.validate()
@@ -144,13 +164,14 @@ def run_epochs(loop: EpochLoop, out: Path, *, resume: bool, on_fresh_start: Call
                 "train_samples_per_s": float(samples * info.world_size / max(elapsed, 1e-9)),
             }
             history.append(record)
-            improved = val["ssim"] > best_ssim
+            improved = val[loop.select] > best_score
             if improved:
-                best_ssim, best_epoch = val["ssim"], epoch + 1
+                best_score, best_ssim, best_epoch = val[loop.select], val["ssim"], epoch + 1
             state = {
                 "model": run.module.state_dict(), "model_config": loop.model_config, "config": loop.config,
                 "optim": run.opt.state_dict(), "sched": run.sched.state_dict(), "epoch": epoch + 1, "step": step,
                 "best_val_ssim": float(best_ssim), "best_epoch": int(best_epoch), "history": history,
+                "best_val_score": float(best_score), "select": loop.select,
             }
             if info.is_main:
                 if improved:

@@ -217,13 +217,14 @@ def finetune(module: nn.Module, dataset: str | os.PathLike[str], cfg: FinetuneCo
     groups = [{"params": old, "lr": cfg.lr}] + ([{"params": new, "lr": cfg.lr * cfg.new_lr_mult}] if new else [])
     opt = torch.optim.Adam(groups, lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.steps), eta_min=0.0)
-    torch.manual_seed(cfg.seed)
     module.train()
     losses: list[float] = []
-    for k in progress(range(cfg.steps), desc=desc, unit="step"):
-        idx = order[(k * cfg.batch_size) % len(ds) :][: cfg.batch_size]
-        batch = collate_dp([ds[int(i)] for i in idx]).to(device)
-        losses.append(float(optimiser_step(module, opt, sched, batch, forward, loss, grad_clip=cfg.grad_clip, step=k,
-                                           where="fine-tune")))
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):  # dropout from cfg.seed only
+        torch.manual_seed(cfg.seed)
+        for k in progress(range(cfg.steps), desc=desc, unit="step"):
+            idx = order[(k * cfg.batch_size) % len(ds) :][: cfg.batch_size]
+            batch = collate_dp([ds[int(i)] for i in idx]).to(device)
+            losses.append(float(optimiser_step(module, opt, sched, batch, forward, loss, grad_clip=cfg.grad_clip, step=k,
+                                               where="fine-tune")))
     module.eval()
     return losses

@@ -32,19 +32,37 @@ def default_run_dir(dataset: Path) -> Path:
 def train_command(dataset: Path, out: Path | None, config_file: Path | None, epochs: int | None,
                   batch_size: int | None, lr: float | None, crop_size: int | None, device: str | None, seed: int | None,
                   sets: tuple[str, ...], resume: bool, overwrite: bool) -> None:
-    """Train the Neural DP Simulator on DATASET's train split (best checkpoint by val SSIM).
+    """Train the Neural DP Simulator on DATASET's train split and keep it only if it beats the physical model.
+
+    By default the network starts as the physical base model (fitted on the train pairs) and learns only what
+    that model gets wrong; it trains with DP-geometry augmentations, stops early on held-out validation pairs
+    (the val split, else whole train photos, else spatially separate tiles of the one photo), and best.pt is the
+    network only if it beats the physical model on them, else the physical model itself; report.json and the
+    last line say why. --set model.prior=none trains the paper's network as released. A train split
+    without valid depth, or one photo as one pair (nothing to hold out), is refused before anything is
+    written (exit 3).
 
     Runs again in the same --out resume from last.pt. Multi-GPU / multi-node:
     torchrun --nproc_per_node G -m dp5k_cli train DATASET --out DIR
     """
+    from .holdout import plan_holdout
     from .train import train
 
     cfg = load_config(config_file, config_overrides(sets, epochs, batch_size, lr, crop_size, device, seed))
     check_training_inputs(dataset)
     run_dir = out or default_run_dir(dataset)
     check_out_location(run_dir)  # the derived default too (an explicit --out was checked already)
+    if cfg.model.prior == "physical":
+        plan_holdout(dataset, cfg.select.holdout, cfg.seed)  # a dataset it cannot train on is refused before anything is touched
     result = train(dataset, run_dir, cfg, resume=prepare_run_dir(run_dir, resume, overwrite))
-    click.echo(report_run(run_dir, result))
+    rep = result.report
+    if not rep:
+        click.echo(report_run(run_dir, result))
+        return
+    net = rep["network_val"]
+    click.echo(f"{run_dir}: {result.epochs_done} epoch(s), {result.steps} steps; the network's best epoch {result.best_epoch} "
+               f"(val PSNR {net['psnr']:.2f} dB, SSIM {net['ssim']:.4f}) -> {run_dir / 'network.pt'}")
+    click.echo(f"{run_dir / 'best.pt'}: {rep['why']}")
 
 
 def evaluate_specs(dataset: Path, simulators: tuple[str, ...], legacy_names: str | None,

@@ -30,6 +30,34 @@ and the same with every kernel mirrored for the right view (the blend weights ar
 does not change them). The blend is affine (its weights sum to 1), so flat regions keep their brightness.
 With :math:`z_s = 0` the output is exactly the single-scale model's; :func:`extend_multiscale` uses that to
 turn a trained single-scale network into a multi-scale one with the same output, to be fine-tuned.
+
+**Physics first** (``ModelConfig.prior = "physical"``; what ``dp5k train`` builds by default, see
+:mod:`neural_dp.train`). The network starts from a physical simulator's views :math:`P_l, P_r` (the base model
+fitted on the train pairs, or a diagnosed model; :class:`~neural_dp.simulators.neural.NeuralDPSimulator` renders
+them) and learns only what that model gets wrong: what the lens does differently (a per-pixel affine K x K
+correction kernel applied to the physical views, and two residual images), then what the sensor does (per
+photodiode a gain and a crosstalk, quadratic in the field position, :meth:`UNetKPN.sensor`),
+
+.. math::
+    O_l = P_l + \sum_t k^l_t \,(S_t P_l - P_l) + A_l, \qquad
+    \check I_l = g_L \odot \big((1 - c_L)\, O_l + c_L\, O_r\big)
+
+(:math:`S_t` shifts by tap ``t``; the kernel's weights are free, so a correction can sharpen, blur or shift, and
+its taps always sum to "keep the brightness"). Every head weight and bias and every sensor coefficient starts at
+exactly 0, so **at initialisation the output equals the physical model's bit for bit**
+(``tests/neural_dp/test_physics_first.py``). The correction respects the two symmetries of DP image formation
+(Eq. 2): the right kernel is the mirror of the left, ``k^r = hflip(k^l)``, and the **sign of the CoC** swaps the
+views (a point in front of focus sends to the left view what a point behind focus sends to the right one): the
+network sees the physical views ordered as (a, b) = (L, R) behind focus and (R, L) in front of it, with
+:math:`|C|` instead of :math:`C`, and its kernel and residuals for view a go to L behind focus and to R in front
+(``k^l = s\, k + (1 - s)\, hflip(k)``, :math:`s = (1 + \tanh(C / 0.5\,px)) / 2`, continuous through focus).
+The sensor stage does not turn with the sign: gains and crosstalk belong to the photodiodes (without it, an L/R
+imbalance learned behind focus came out on the wrong view in front of focus).
+What it learns behind focus therefore applies, mirrored, in front of it: on the Sdirt photos (train behind focus,
+test in front) the network without this structure gained on held-out tiles of its own photo and lost 2.5 dB on
+the other photo. Inputs (13 channels): sharp, :math:`P_a, P_b`, :math:`|C| / 10` px, the valid-depth mask and the
+pixel's field position (x, y) in its camera frame (tiles know where they were cut). Depth is not an input: a
+planar target's min-max normalised depth is meaningless, and the CoC carries what the blur needs.
 """
 
 from __future__ import annotations
@@ -72,6 +100,14 @@ class ModelConfig:
     """Context (px) added around each inference tile and discarded after. At least the network's receptive
     radius (:attr:`UNetKPN.receptive_radius_px`: 122 px at 4 levels) is always used, rounded up to a multiple
     of ``2 ** levels``, so the tiled output equals the whole-image output; 0 = exactly that."""
+    prior: str = "none"
+    """What the network starts from: ``"none"``, the paper's network (its kernels act on the sharp image; what a
+    checkpoint without this key is), or ``"physical"``, a correction of a physical simulator's views that is
+    exactly that simulator at initialisation (the module docstring; ``dp5k train``'s default)."""
+    prior_spec: str = ""
+    """The physical simulator of ``prior = "physical"`` as JSON (:func:`neural_dp.simulators.base.spec.model_to_spec`:
+    the base model with its fitted parameters and any diagnosed effects); ``dp5k train`` fills it in (leave it
+    empty; empty = the base model at its defaults)."""
 
 
 def _norm(kind: str, ch: int) -> nn.Module:
@@ -106,10 +142,19 @@ class UNetKPN(nn.Module):
     """
 
     in_channels = 5
+    """Trunk inputs of the paper's network (``prior = "none"``); 13 with a physical prior."""
+    physical_inputs = 11
+    """Channels of ``inputs`` with a physical prior: P_l (3), P_r (3), signed CoC px (1), valid (1), field x, y (2),
+    mirrored (1) (:func:`neural_dp.simulators.neural.model_inputs`)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
+        if cfg.prior not in PRIORS:
+            raise BadInputError(f"model.prior must be one of {', '.join(PRIORS)}, got {cfg.prior!r}", where="ModelConfig")
         self.cfg = cfg
+        self.physical = cfg.prior == "physical"
+        if self.physical:
+            self.in_channels = 13
         ch = [cfg.base_channels * 2**i for i in range(cfg.levels + 1)]
         self.enc = nn.ModuleList([_Block(self.in_channels, ch[0], cfg.norm)])
         self.enc.extend(_Block(ch[i], ch[i + 1], cfg.norm) for i in range(cfg.levels))
@@ -118,14 +163,20 @@ class UNetKPN(nn.Module):
         k2 = cfg.kernel_size**2
         self.n_kernel = k2 * (3 if cfg.kernel_per_channel else 1)
         self.head = nn.Conv2d(ch[0], self.n_kernel + 6, 1)
-        # Start as the identity: zero weights, kernel logits peaked on the centre tap, zero residuals.
+        # Start as the identity: zero weights, kernel logits peaked on the centre tap (the paper's network) or a
+        # zero correction (physical prior: the output is then exactly the physical views), zero residuals.
         nn.init.zeros_(self.head.weight)
         bias = torch.zeros(self.n_kernel + 6)
-        centre = bias[: self.n_kernel].view(-1, k2)
-        centre[:, k2 // 2] = 4.0
+        if not self.physical:
+            centre = bias[: self.n_kernel].view(-1, k2)
+            centre[:, k2 // 2] = 4.0
         with torch.no_grad():
             self.head.bias.copy_(bias)
         self.view_gain = nn.Parameter(torch.full((2, 3), 0.5))
+        if self.physical:  # the sensor stage instead of constant gains: per photodiode, functions of the field
+            del self.view_gain
+            self.sensor_gain = nn.Parameter(torch.zeros(2, 3, len(FIELD_TERMS)))
+            self.sensor_xtalk = nn.Parameter(torch.zeros(2, len(FIELD_TERMS)))
         self.n_scales = int(cfg.multiscale_levels)
         if self.n_scales < 0:
             raise BadInputError(f"multiscale_levels must be >= 0, got {cfg.multiscale_levels}", where="ModelConfig")
@@ -135,7 +186,8 @@ class UNetKPN(nn.Module):
             self.scale_head = nn.Conv2d(ch[0], self.n_scales * (self.n_kernel + 1), 1)
             nn.init.zeros_(self.scale_head.weight)
             sb = torch.zeros(self.n_scales * (self.n_kernel + 1))
-            sb[: self.n_scales * self.n_kernel].view(-1, k2)[:, k2 // 2] = 4.0
+            if not self.physical:  # a physical prior's extra scales are corrections too: zero
+                sb[: self.n_scales * self.n_kernel].view(-1, k2)[:, k2 // 2] = 4.0
             with torch.no_grad():
                 self.scale_head.bias.copy_(sb)  # blend logits 0: exactly the single-scale output
 
@@ -189,11 +241,13 @@ class UNetKPN(nn.Module):
         return h
 
     def _kernels(self, logits: Tensor) -> Tensor:
-        """Softmax kernels from (B, n_kernel, H, W) logits: (B, K*K, H, W) or (B, 3, K*K, H, W)."""
+        """Softmax kernels from (B, n_kernel, H, W) logits: (B, K*K, H, W) or (B, 3, K*K, H, W); with a physical
+        prior the free correction weights themselves (no softmax: a correction's taps need not be positive)."""
         B, _, H, W = logits.shape
         if self.cfg.kernel_per_channel:
-            return torch.softmax(logits.view(B, 3, self.cfg.kernel_size**2, H, W), dim=2)
-        return torch.softmax(logits, dim=1)
+            w = logits.view(B, 3, self.cfg.kernel_size**2, H, W)
+            return w if self.physical else torch.softmax(w, dim=2)
+        return logits if self.physical else torch.softmax(logits, dim=1)
 
     def _heads(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         out = self.head(h)
@@ -227,6 +281,10 @@ class UNetKPN(nn.Module):
         """
         if self.scale_head is None:
             return
+        if self.physical:  # corrections: zero is exactly the single-scale output
+            self.scale_head.weight.zero_()
+            self.scale_head.bias.zero_()
+            return
         nk = self.n_kernel
         for s in range(self.n_scales):
             self.scale_head.weight[s * nk : (s + 1) * nk] = self.head.weight[:nk]
@@ -236,6 +294,8 @@ class UNetKPN(nn.Module):
 
     def forward(self, sharp: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
         """Both DP views from the sharp image and the network input (pads to a multiple of ``2 ** levels``)."""
+        if self.physical:
+            return self._forward_physical(sharp, inputs)
         H, W = sharp.shape[-2:]
         m = self.multiple
         ph, pw = (-H) % m, (-W) % m
@@ -259,6 +319,56 @@ class UNetKPN(nn.Module):
         left = gain_l * blur_l + res_l[..., :H, :W]
         right = gain_r * blur_r + res_r[..., :H, :W]
         return left, right
+
+    def _forward_physical(self, sharp: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """The physical views corrected (module docstring); ``inputs`` as :attr:`physical_inputs`."""
+        if inputs.shape[1] != self.physical_inputs:
+            raise BadInputError(f"a physical-prior network takes {self.physical_inputs} input channels, got "
+                                f"{inputs.shape[1]}", where="UNetKPN")
+        H, W = sharp.shape[-2:]
+        pl, pr, coc, valid = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7], inputs[:, 7:8]
+        field, mirrored = inputs[:, 8:10], inputs[:, 10:11]
+        s = sign_weight(coc)
+        pa, pb = s * pl + (1 - s) * pr, s * pr + (1 - s) * pl
+        x = torch.cat([sharp, pa, pb, coc.abs() / self.cfg.coc_scale_px, valid, field], dim=1)
+        m = self.multiple
+        ph, pw = (-H) % m, (-W) % m
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        h = self._trunk(x)
+        k, ra, rb = self._heads(h)
+        k, ra, rb = k[..., :H, :W], ra[..., :H, :W], rb[..., :H, :W]
+        k_l = mirror_by_sign(k, s)
+        corr_l, corr_r = pl + correction(pl, k_l), pr + correction(pr, flip_lr(k_l))
+        if self.scale_head is not None:
+            kernels, _ = self._scale_heads(h)  # a physical prior's extra scales are added corrections (no blend)
+            for ks, d in zip(kernels, self.dilations):
+                ks_l = mirror_by_sign(ks[..., :H, :W], s)
+                corr_l = corr_l + correction(box_prefilter(pl, d), ks_l, d)
+                corr_r = corr_r + correction(box_prefilter(pr, d), flip_lr(ks_l), d)
+        res_l, res_r = s * ra + (1 - s) * rb, s * rb + (1 - s) * ra  # light the kernels cannot reach: optics too
+        return self.sensor(corr_l + res_l, corr_r + res_r, field, mirrored > 0.5)
+
+    def sensor(self, left: Tensor, right: Tensor, field: Tensor, mirrored: Tensor) -> tuple[Tensor, Tensor]:
+        """The sensor stage of a physical-prior network: what belongs to the photodiodes, not to the lens, so it does
+        not turn with the CoC's sign. Each photodiode's view is ``g (1 - k) own + k other``: a per-channel gain
+        ``g = exp(p_g(x, y))`` and a crosstalk ``k = p_k(x, y)`` from the other photodiode, each a quadratic in the
+        field position (:data:`FIELD_TERMS`; all coefficients start at 0: the identity, exactly). An item mirrored
+        by the augmentation (``mirrored`` (B, 1, H, W) bool) shows the right photodiode as its left view at field
+        ``-x``: it gets the other photodiode's stage, evaluated there."""
+        x, y = field[:, 0:1], field[:, 1:2]
+        xm = torch.where(mirrored, -x, x)
+        terms = torch.cat([torch.ones_like(x), xm, y, xm * xm, xm * y, y * y], dim=1)  # (B, T, H, W)
+
+        def stage(v: int) -> tuple[Tensor, Tensor]:
+            g = torch.exp(torch.einsum("ct,bthw->bchw", self.sensor_gain[v], terms))
+            k = torch.einsum("t,bthw->bhw", self.sensor_xtalk[v], terms)[:, None]
+            return g, k
+
+        (g0, k0), (g1, k1) = stage(0), stage(1)
+        g_l, k_l = torch.where(mirrored, g1, g0), torch.where(mirrored, k1, k0)
+        g_r, k_r = torch.where(mirrored, g0, g1), torch.where(mirrored, k0, k1)
+        return g_l * (left + k_l * (right - left)), g_r * (right + k_r * (left - right))
 
 
 def box_prefilter(x: Tensor, d: int) -> Tensor:
@@ -320,6 +430,38 @@ def extend_multiscale(net: UNetKPN, levels: int = 2) -> UNetKPN:
     ext.init_scales_from_base()
     ext.train(net.training)
     return ext
+
+
+PRIORS = ("none", "physical")
+
+FIELD_TERMS = ("1", "x", "y", "x^2", "xy", "y^2")
+"""The terms of the quadratic field polynomials of a physical-prior network's sensor stage (:meth:`UNetKPN.sensor`)."""
+"""What a network can start from (:attr:`ModelConfig.prior`)."""
+
+SIGN_SOFTNESS_PX = 0.5
+"""Width (px of CoC) over which a physical-prior network's correction turns from the behind-focus to the in-front
+form (:func:`sign_weight`)."""
+
+
+def sign_weight(coc_px: Tensor) -> Tensor:
+    """:math:`s = (1 + \\tanh(C / 0.5\\,px)) / 2`: 1 behind focus, 0 in front of it, 1/2 in focus; ``s(-C) = 1 - s(C)``,
+    so swapping the views and the CoC's sign swaps what the network's view "a" and view "b" are."""
+    return 0.5 * (1.0 + torch.tanh(coc_px / SIGN_SOFTNESS_PX))
+
+
+def mirror_by_sign(k: Tensor, s: Tensor) -> Tensor:
+    """The left view's correction kernels from the network's kernels ``k`` for view "a" (B, K*K, H, W) or
+    (B, 3, K*K, H, W): ``s k + (1 - s) hflip(k)`` with ``s`` (B, 1, H, W) from :func:`sign_weight`."""
+    s = s[:, None] if k.ndim == 5 else s
+    return s * k + (1 - s) * flip_lr(k)
+
+
+def correction(x: Tensor, k: Tensor, dilation: int = 1) -> Tensor:
+    """``sum_t k_t (S_t x - x)``: an affine per-pixel correction of ``x`` (B, C, H, W) by free kernel weights ``k``
+    (B, K*K, H, W) or (B, C, K*K, H, W) (taps ``dilation`` px apart); exactly 0 where ``k`` is 0, and it keeps a flat
+    region's brightness whatever ``k`` is."""
+    total = k.sum(2) if k.ndim == 5 else k.sum(1, keepdim=True)
+    return apply_kernels(x, k, dilation=dilation) - total * x
 
 
 def normalize_depth(depth_mm: Tensor, valid: Tensor) -> Tensor:

@@ -1,7 +1,16 @@
-"""The Neural DP Simulator behind the common :class:`DPSimulator` interface (tiled inference)."""
+"""The Neural DP Simulator behind the common :class:`DPSimulator` interface (tiled inference).
+
+With a physical prior (``ModelConfig.prior = "physical"``, :mod:`neural_dp.model`) the simulator first renders the
+physical model its checkpoint names (``ModelConfig.prior_spec``) on the whole image, then runs the network over it.
+Like the base model it has free parameters that ``dp5k evaluate`` fits on the train pairs of the dataset it scores
+(:meth:`NeuralDPSimulator.fit`): the physical model's rim softness and gain, fitted exactly as ``base`` is, and the
+strength of the learned correction, in [0, 1] (0 = the physical model exactly).
+"""
 
 from __future__ import annotations
 
+import json
+import logging
 import os
 from dataclasses import fields
 from typing import Any
@@ -13,13 +22,46 @@ from dp5k_common.errors import BadInputError
 from dp5k_learn.batch import DPBatch
 
 from ..model import ModelConfig, UNetKPN, normalize_depth
+from .base import BaseModel, field_coords
+from .base.spec import model_from_spec
 from .interface import DPSimulator
+
+logger = logging.getLogger(__name__)
 
 
 def model_inputs(batch: DPBatch, coc_scale_px: float) -> Tensor:
     """The network input (B, 5, H, W): sharp, CoC / coc_scale_px (0 where invalid), normalised depth."""
     coc = torch.where(batch.valid, batch.coc_px, torch.zeros_like(batch.coc_px)) / coc_scale_px
     return torch.cat([batch.sharp, coc, normalize_depth(batch.depth_mm, batch.valid)], dim=1)
+
+
+def physical_inputs(batch: DPBatch, prior_left: Tensor, prior_right: Tensor) -> Tensor:
+    """The input (B, 11, H, W) of a physical-prior network (:attr:`~neural_dp.model.UNetKPN.physical_inputs`): the
+    physical views, the signed CoC in px (0 where invalid), the valid mask, the pixels' field position (the batch's
+    ``field``, else each item as a whole frame) and whether an item is mirrored."""
+    B, _, H, W = batch.sharp.shape
+    dev, dt = batch.sharp.device, batch.sharp.dtype
+    valid = batch.valid.to(dt)
+    coc = torch.where(batch.valid, batch.coc_px, torch.zeros_like(batch.coc_px)).to(dt)
+    field = batch.field.to(dt) if batch.field is not None else field_coords(B, H, W, dev).to(dt)
+    mirrored = (batch.mirrored.to(dt).view(B, 1, 1, 1) if batch.mirrored is not None else torch.zeros(B, 1, 1, 1, device=dev, dtype=dt))
+    return torch.cat([prior_left.to(dt), prior_right.to(dt), coc, valid, field, mirrored.expand(B, 1, H, W)], dim=1)
+
+
+def build_prior(cfg: ModelConfig) -> BaseModel:
+    """The physical model a physical-prior network corrects: ``cfg.prior_spec`` rebuilt, or the base model at its
+    defaults when the spec is empty.
+
+    Raises:
+        BadInputError: a spec that is not JSON or not a model spec.
+    """
+    if not cfg.prior_spec:
+        return BaseModel().eval()
+    try:
+        spec = json.loads(cfg.prior_spec)
+    except json.JSONDecodeError as exc:
+        raise BadInputError(f"model.prior_spec is not JSON ({exc})", where="ModelConfig") from exc
+    return model_from_spec(spec).eval()
 
 
 def _spans(n: int, tile: int) -> list[tuple[int, int]]:
@@ -40,6 +82,68 @@ class NeuralDPSimulator(DPSimulator):
         super().__init__()
         self.cfg = cfg or (net.cfg if net is not None else ModelConfig())
         self.net = net if net is not None else UNetKPN(self.cfg)
+        self.prior: BaseModel | None = build_prior(self.cfg) if self.cfg.prior == "physical" else None
+        self.correction_scale = 1.0
+        """How much of the learned correction a physical-prior simulator applies (1 = all of it; :meth:`fit`)."""
+
+    @property
+    def physical(self) -> bool:
+        """True when the network corrects a physical model (``ModelConfig.prior = "physical"``)."""
+        return self.prior is not None
+
+    @torch.no_grad()
+    def prior_views(self, batch: DPBatch) -> tuple[Tensor, Tensor]:
+        """The physical model's (left, right) for ``batch``: the batch's own ``prior_left`` / ``prior_right`` when a
+        trainer rendered them, else rendered now, on the whole batch exactly as the ``base`` simulator renders it."""
+        if self.prior is None:
+            raise BadInputError("this Neural DP network has no physical prior", where="NeuralDPSimulator")
+        if batch.prior_left is not None and batch.prior_right is not None:
+            return batch.prior_left, batch.prior_right
+        left, right = self.prior(batch)
+        return left.to(batch.sharp.dtype), right.to(batch.sharp.dtype)
+
+    def _fit_start(self) -> dict[str, float]:
+        """Where :meth:`fit` starts the physical model's fit: the spec's ``fit_start`` (what ``dp5k train`` fitted from:
+        the base model's defaults, or a diagnose report's values), else its current values."""
+        spec = json.loads(self.cfg.prior_spec) if self.cfg.prior_spec else {}
+        return {k: float(v) for k, v in spec.get("fit_start", {}).items()}
+
+    def inputs(self, batch: DPBatch) -> Tensor:
+        """The network's input for ``batch`` (:func:`model_inputs`, or :func:`physical_inputs` with the physical views)."""
+        if self.prior is None:
+            return model_inputs(batch, self.cfg.coc_scale_px)
+        return physical_inputs(batch, *self.prior_views(batch))
+
+    def fit(self, batches: list[DPBatch]) -> dict[str, float]:  # type: ignore[override]
+        """With a physical prior: fit its rim softness and gain on ``batches`` exactly as the base model is fitted
+        (:meth:`BaseModel.fit`), then the strength of the correction, :attr:`correction_scale` in [0, 1], by least
+        squares over the batches' valid pixels (closed form: the views are affine in it). ``dp5k evaluate`` calls
+        this with the train crops of the dataset it scores, so on a camera whose train pairs the correction does
+        not fit the simulator falls back towards the physical model. The paper's network has nothing to fit.
+
+        Returns:
+            The fitted values by name (empty for the paper's network).
+        """
+        if self.prior is None or not batches:
+            return {}
+        self.prior.params.update(self._fit_start())  # the start of the base fit in evaluate: the same fit, the same result
+        fitted = self.prior.fit(batches)
+        num = den = 0.0
+        self.correction_scale = 1.0
+        was_training = self.training
+        self.eval()
+        with torch.no_grad():
+            for b in batches:
+                pl, pr = self.prior_views(b)
+                left, right = self._network(b, pl, pr)
+                m = b.valid.to(left.dtype)
+                for out, p, target in ((left, pl, b.left), (right, pr, b.right)):
+                    d = (out - p) * m
+                    num += float((d * (target - p)).sum())
+                    den += float((d * d).sum())
+        self.train(was_training)
+        self.correction_scale = min(1.0, max(0.0, num / den)) if den > 0 else 1.0
+        return {**fitted, "correction_scale": self.correction_scale}
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> NeuralDPSimulator:
@@ -54,13 +158,26 @@ class NeuralDPSimulator(DPSimulator):
             raise BadInputError("not a dp5k Neural DP checkpoint (no 'model' / 'model_config')", where=path)
         known = {f.name for f in fields(ModelConfig)}
         cfg = ModelConfig(**{k: v for k, v in state["model_config"].items() if k in known})
-        sim = cls(cfg)
+        with torch.random.fork_rng(devices=[]):  # the initial weights are overwritten: draw them from no one's generator
+            sim = cls(cfg)
         sim.net.load_state_dict(state["model"])
         sim.eval()
         return sim
 
     def forward(self, batch: DPBatch) -> tuple[Tensor, Tensor]:  # type: ignore[override]
-        inputs = model_inputs(batch, self.cfg.coc_scale_px)
+        if self.prior is None:
+            return self._network(batch)
+        pl, pr = self.prior_views(batch)
+        left, right = self._network(batch, pl, pr)
+        a = self.correction_scale
+        if a == 1.0:
+            return left, right
+        return pl + a * (left - pl), pr + a * (right - pr)
+
+    def _network(self, batch: DPBatch, prior_left: Tensor | None = None, prior_right: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The network's views (the whole correction, whatever :attr:`correction_scale` is), tiled at inference."""
+        inputs = (model_inputs(batch, self.cfg.coc_scale_px) if prior_left is None
+                  else physical_inputs(batch, prior_left, prior_right))
         H, W = batch.sharp.shape[-2:]
         tile = self.cfg.tile_px
         whole_image_norm = self.cfg.norm == "group"  # GroupNorm's statistics span the image: tiles would differ
