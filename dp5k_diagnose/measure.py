@@ -33,6 +33,19 @@ def pair_images(samples: Sequence[Sample]) -> list[PairImages]:
                        s.field[0].numpy()) for s in samples]
 
 
+def pair_scales(samples: Sequence[Sample]) -> dict[str, np.ndarray]:
+    """Per pair (P,), by the thin lens (Eq. 6, ``c = (f/N) (v/f - 1 - v/Z) / pitch`` px, ``1/v = 1/f - 1/F``): its
+    CoC at infinity ``coc_at_infinity_px`` (how far a focus error that scales with the focus distance moves its CoC)
+    and ``aperture_px = (f/N) v / pitch``, the CoC per dioptre (mm^-1) of depth (how far a focal-length shift or a
+    focus error in dioptres moves it)."""
+    f = np.array([float(s.batch.focal_length_mm[0]) for s in samples])
+    N = np.array([float(s.batch.f_number[0]) for s in samples])
+    F = np.array([float(s.batch.focus_distance_mm[0]) for s in samples])
+    pitch = np.array([float(s.batch.pixel_pitch_mm[0]) for s in samples])
+    v = 1.0 / np.maximum(1.0 / f - 1.0 / np.maximum(F, 1.05 * f), 1e-12)
+    return {"coc_at_infinity_px": (f / N) * (v / f - 1.0) / pitch, "aperture_px": (f / N) * v / pitch}
+
+
 def measured_views(samples: Sequence[Sample]) -> list[Views]:
     return [(s.batch.left[0].numpy(), s.batch.right[0].numpy()) for s in samples]
 
@@ -122,7 +135,7 @@ class Measurement:
 
     def signatures(self, model: str = "model") -> dict[str, Signature]:
         """Every effect's signature, measured minus ``model``'s atlas."""
-        p = Pairing(self.atlas, "measured", model)
+        p = Pairing(self.atlas, "measured", model, pair_scales=pair_scales(self.samples))
         out = [lr_gain_signature(self.atlas, p), field_signature(self.atlas, p), chromatic_signature(p, self.colour),
                disparity_signature(p), focus_signature(p), profile_signature(self.atlas, p), front_back_signature(p),
                misregistration_signature(p), noise_signature(self.noise, self.cfg)]

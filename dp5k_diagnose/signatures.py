@@ -11,9 +11,10 @@ lr_gain_imbalance       ln(L/R) of the kernels' sums (their DC gains) over the f
 disparity_scale         the split's efficiency: the L-R centroid gap over the gap an ideal split of the same
                         L + R kernel would give (``2 E|x - x_c|``), pooled over |CoC| >= 2 px
 misregistration         the L + R kernel's centroid (x, y) px near focus (|CoC| < 4 px), where no blur moves it
-focus_offset            the front/back odd part of the blur's size, its constant: a focus error adds the same
-                        CoC on both sides, so one side grows and the other shrinks by the same px
-chromatic_defocus       the same constant per colour channel, R and B against G
+focus_offset            where the DP disparity vanishes: the CoC shift (px, at the mean pair) that moves the
+                        simulator's L-R centroid gap onto the measured one, growing from pair to pair with the
+                        pair's CoC at infinity (:func:`_focus_from_gap`)
+chromatic_defocus       the same shift per colour channel, R and B against G, growing with the pair's aperture
 front_back_asymmetry    the odd part's growth with |CoC| (a size ratio) and the profile's front/back difference
 psf_profile             the profile index ``E[r^2] / E[r]^2`` of the L + R kernel (flat disc 9/8, a bright rim
                         lower, a bright centre higher), even over front and back
@@ -32,6 +33,7 @@ Units: sizes and centroids in output px, CoC as its signed diameter in output px
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -301,6 +303,9 @@ class Pairing:
     measured: str = "measured"
     model: str = "model"
     keys: list[Key] | None = None
+    pair_scales: Mapping[str, np.ndarray] | None = None
+    """Per-pair scales (name -> (P,) in the atlas's pair order) that a cell's value is expected to grow with, such as a
+    pair's CoC at infinity (:func:`dp5k_diagnose.measure.pair_scales`); :meth:`cell_scale` averages them per cell."""
 
     def __post_init__(self) -> None:
         if self.keys is None:
@@ -310,6 +315,19 @@ class Pairing:
         self.cbar = self.c
         self.pix = np.array([float(self.atlas.cells[k].pixels.sum()) for k in self.keys])
         self._t: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+
+    def cell_scale(self, name: str) -> np.ndarray | None:
+        """(n,) per cell, the pixel-weighted mean of the pairs' scale ``name`` over its pixels, over that mean over
+        every cell (so about 1); None without that scale."""
+        if not self.pair_scales or name not in self.pair_scales:
+            return None
+        s = np.asarray(self.pair_scales[name], dtype=np.float64)
+        cells = [self.atlas.cells[k] for k in self.keys]
+        num = np.array([float((c.pixels * s[c.pairs]).sum()) for c in cells])
+        den = np.array([float(c.pixels.sum()) for c in cells])
+        if not den.sum() or not np.isfinite(num).all() or abs(num.sum()) < 1e-12:
+            return None
+        return (num / np.maximum(den, 1e-12)) / (num.sum() / den.sum())
 
     def t(self, name: str, channel: int | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """attr -> (point (n,), boot (B, n)) of view-set ``name``'s moments over the cells (one ``channel`` or their
@@ -341,22 +359,31 @@ class Pairing:
                      float(_wmean(_plausible(attr, pm), ww)), float(_wmean(_plausible(attr, ps), ww)))
 
     def sided_fit(self, attr: str, lo: float, hi: float, channel: int | None = None,
-                  terms: tuple[str, ...] = ("d0", "alpha", "g_even", "g_odd")) -> tuple[np.ndarray, np.ndarray] | None:
+                  terms: tuple[str, ...] = ("d0", "alpha", "g_even", "g_odd"),
+                  per: np.ndarray | None = None, d0_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """Fit the difference of ``attr`` against each cell's mean CoC c over the cells with ``lo <= |c| <= hi``:
         ``d(c) = d0 + alpha sign(c) + g_even |c| + g_odd c`` (the ``terms`` asked; inverse-variance weighted). A
         focus error is ``alpha`` (the same CoC added on both sides), a size that grows differently in front and
         behind is ``g_odd``; a residual blur or a profile change moves ``d0`` and ``g_even``. Fitted against the
         cells' own mean CoC, so that a bin whose pixels sit at another CoC in front than behind does not read as a
-        difference. Returns (coefficients in ``terms`` order, boot (B, len(terms))), or None with fewer than two cells
-        on either side."""
+        difference. With ``per`` ((n,), per cell) the difference is fitted in units of it, ``d / per`` (weights
+        ``per^2 / se^2``; a cell where ``per`` is 0 or missing carries none). Returns (coefficients in ``terms`` order,
+        boot (B, len(terms))), or None with fewer than two cells on either side. With ``d0_scale`` ((n,), about 1) the
+        constant term is ``d0 d0_scale``: a difference that grows with a per-pair scale (:meth:`cell_scale`), whose
+        pairs a cell pools in its own proportions; ``d0`` is then its value at the mean pair."""
         d, db = self.diff(attr, channel)
         c = self.cbar
         w = self.weights(attr, channel)
+        if per is not None:
+            ok = np.isfinite(per) & (np.abs(per) > 0)
+            safe = np.where(ok, per, 1.0)
+            d, db, w = d / safe, db / safe[None], np.where(ok, w * safe ** 2, 0.0)
         sel = (np.abs(c) >= lo) & (np.abs(c) <= hi) & (w > 0)
         if (sel & (c > 0)).sum() < 2 or (sel & (c < 0)).sum() < 2:
             return None
         cs = c[sel]
-        cols = {"d0": np.ones_like(cs), "alpha": np.sign(cs), "g_even": np.abs(cs), "g_odd": cs}
+        ones = np.ones_like(cs) if d0_scale is None else np.asarray(d0_scale, dtype=np.float64)[sel]
+        cols = {"d0": ones, "alpha": np.sign(cs), "g_even": np.abs(cs), "g_odd": cs}
         sw = np.sqrt(w[sel])
         X = np.stack([cols[k] for k in terms], 1) * sw[:, None]
         pinv = np.linalg.pinv(X)
@@ -422,27 +449,61 @@ IDEAL_GAP_PER_COC = 4.0 / (3.0 * math.pi)
 """The ideal split's L-R centroid gap per px of CoC (half discs of a flat disc: ``4 c / (3 pi)``)."""
 
 
-def _focus_from_gap(p: Pairing, channel: int | None = None) -> tuple[float, np.ndarray] | None:
-    """beta, the CoC (px) a focus error adds on both sides of focus, and its bootstrap: the L-R centroid gap is
-    ``(4 / 3 pi) e (c + beta)`` (``e`` the split's efficiency), so beta is the constant ``d0`` of the gap difference's
-    fit ``d0 + alpha sign(c) + g_even |c| + g_odd c`` (:meth:`Pairing.sided_fit`) over ``e 4 / (3 pi)``: a change of
-    the efficiency moves ``g_odd``, a profile that differs between the sides (which moves the halves' centroids apart
-    on one side and together on the other) ``g_even`` and ``alpha``. The gap is a first moment, measured more
-    precisely than a size."""
-    fit = p.sided_fit("gap", *FOCUS_RANGE_PX, channel=channel, terms=("d0", "alpha", "g_even", "g_odd"))
+MIN_GAP_SLOPE = 0.05
+"""The smallest local slope of the simulator's gap (px of gap per px of CoC) a cell must have to say where the
+disparity vanishes: below about a pixel of CoC both views' kernels fit in one pixel and the gap stays 0 whatever the
+focus (a focus error moves nothing there)."""
+
+
+def gap_slope(c: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """(n,) d gap / dc (px of gap per px of CoC) of a gap curve sampled at the cells' mean CoC ``c`` (any order; the
+    neighbours' central difference), NaN where the curve is missing or flat on either side (a difference to a
+    neighbour below :data:`MIN_GAP_SLOPE`: the onset of blur, where sub-pixel kernels leave the gap at 0)."""
+    out = np.full(len(c), np.nan)
+    ok = np.isfinite(gap) & np.isfinite(c)
+    if ok.sum() < 2:
+        return out
+    idx = np.flatnonzero(ok)[np.argsort(c[ok])]
+    cs, gs = c[idx], gap[idx]
+    keep = np.concatenate([[True], np.diff(cs) > 1e-9])
+    idx, cs, gs = idx[keep], cs[keep], gs[keep]
+    if len(cs) < 2:
+        return out
+    step = np.diff(gs) / np.diff(cs)  # (m - 1,) between neighbours
+    flattest = np.minimum(np.concatenate([step[:1], step]), np.concatenate([step, step[-1:]]))
+    out[idx] = np.where(flattest >= MIN_GAP_SLOPE, np.gradient(gs, cs), np.nan)
+    return out
+
+
+def _focus_from_gap(p: Pairing, channel: int | None = None, scale: str | None = None) -> tuple[float, np.ndarray] | None:
+    """beta, the CoC (px) a focus error adds on both sides of focus, and its bootstrap: each cell's gap difference
+    over the simulator's local gap slope (:func:`gap_slope`) is the CoC shift that moves one gap onto the other, and
+    beta is the constant ``d0`` of its fit ``d0 + alpha sign(c) + g_odd c`` (:meth:`Pairing.sided_fit`): a change of
+    the split's efficiency moves ``g_odd``, a profile that differs between the sides ``alpha``. A ``g_even |c|`` term
+    is left out: beside a ``d0`` that grows with the pairs' scale it is nearly collinear (on another renderer's clean
+    set it swung beta to +0.31 px, 95 % interval [+0.10, +0.48]; without it +0.06 [-0.01, +0.10]). The gap is a first
+    moment, measured more precisely than a size. Dividing by the local slope, not the ideal ``4 / (3 pi)``, keeps the
+    cells near focus, where the gap is flat (sub-pixel kernels) and very precisely 0 on both sides, from pulling beta
+    to 0 (a focus error of -0.25 px read as -0.04).
+
+    With ``scale`` (a per-pair scale of :attr:`Pairing.pair_scales`) beta is taken to grow with it from pair to pair,
+    and is reported at the mean pair: a focus error's CoC is the pair's CoC at infinity times ``1/k - 1`` (a relative
+    error k), a chromatic focal shift's the pair's aperture times the shift. A bin pools the pairs in its own
+    proportions (far background only from pairs focused near), so a constant beta would read the spread as a growth
+    with |CoC|."""
+    slope = gap_slope(p.c, p.t(p.model, channel)["gap"][0])
+    fit = p.sided_fit("gap", *FOCUS_RANGE_PX, channel=channel, terms=("d0", "alpha", "g_odd"), per=slope,
+                      d0_scale=p.cell_scale(scale) if scale else None)
     if fit is None:
         return None
-    (d0, _, _, _), boot = fit
-    big = np.abs(p.c) >= 2.2
-    e = float(_wmean(_plausible("efficiency", p.t(p.measured, channel)["efficiency"][0]), np.where(big, p.pix, 0.0))) if big.any() else 1.0
-    k = 1.0 / (IDEAL_GAP_PER_COC * max(e if np.isfinite(e) else 1.0, 0.2))
-    return k * float(d0), k * boot[:, 0]
+    (d0, _, _), boot = fit
+    return float(d0), boot[:, 0]
 
 
 def focus_signature(p: Pairing) -> Signature:
     """A focus error adds the same CoC beta (px) on both sides of focus: it moves where the DP disparity vanishes
     (:func:`_focus_from_gap`)."""
-    f = _focus_from_gap(p)
+    f = _focus_from_gap(p, scale="coc_at_infinity_px")
     if f is None:
         return Signature("focus_offset", unmeasured=f"too few bins measured on both sides of focus (|CoC| {FOCUS_RANGE_PX[0]:g}-{FOCUS_RANGE_PX[1]:g} px)")
     return Signature("focus_offset", [Value("coc_offset", "px of CoC", f[0], f[1], 0.15)])
@@ -452,7 +513,7 @@ def chromatic_signature(p: Pairing, colour: bool) -> Signature:
     """The focus signature per colour channel, red and blue against green (px of CoC)."""
     if not colour:
         return Signature("chromatic_defocus", unmeasured="the data has no colour (R = G = B within noise)")
-    fits = [_focus_from_gap(p, channel=ch) for ch in range(3)]
+    fits = [_focus_from_gap(p, channel=ch, scale="aperture_px") for ch in range(3)]
     if any(f is None for f in fits):
         return Signature("chromatic_defocus", unmeasured=f"too few bins measured on both sides of focus (|CoC| {FOCUS_RANGE_PX[0]:g}-{FOCUS_RANGE_PX[1]:g} px)")
     return Signature("chromatic_defocus", [Value(f"coc_offset_{label}_vs_green", "px of CoC", fits[ch][0] - fits[1][0], fits[ch][1] - fits[1][1], 0.15)

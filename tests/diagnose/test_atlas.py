@@ -86,21 +86,21 @@ def test_a_wide_kernel_is_solved_on_blocks_and_keeps_its_centroid() -> None:
     assert centroid_x(k) == pytest.approx(centroid_x(kl), abs=0.25)
 
 
-def test_the_bootstrap_covers_what_the_noise_does() -> None:
-    """Over independent noise draws on the same scenes, a kernel's centroid varies by about the bootstrap's standard
-    deviation, neither far more (intervals too narrow: false differences) nor far less (no power)."""
+def test_the_bootstrap_covers_what_resampling_does() -> None:
+    """Over independent datasets (new scenes and new noise: what a bootstrap over pairs stands for), a kernel's
+    centroid varies by about the bootstrap's standard deviation, neither far more (intervals too narrow: false
+    differences) nor far less (no power). Holding the scenes fixed would leave out the scene-to-scene part that the
+    pair bootstrap rightly carries."""
     key = (int(A.FINE.of(np.array([8.0]))[0]), -1)
     cx, sd = [], []
-    for draw in range(5):
-        imgs, views, _, _ = blurred_pairs(8.0, 4.0, "full", n=3, noise=0.02, seed=0)
-        rng = np.random.default_rng(100 + draw)
-        views = [(L + rng.normal(0, 0.02, L.shape), R) for L, R in views]
+    for draw in range(8):
+        imgs, views, _, _ = blurred_pairs(8.0, 4.0, "full", n=3, noise=0.02, seed=draw)
         m = A.AtlasMeasurer(imgs, 100, 0)
-        m.measure("m", views, (0.0, 0.02 * np.sqrt(2)))
+        m.measure("m", views, (0.0, 0.02))
         cx.append(centroid_x(m.atlas.kernels(key, "m")[0, 1]))
         sd.append(np.std([centroid_x(k) for k in m.atlas.kernels(key, "m", boot=True)[:, 0, 1]]))
     spread, claimed = float(np.std(cx, ddof=1)), float(np.mean(sd))
-    assert claimed / 3 < spread < 1.5 * claimed, (spread, claimed)
+    assert claimed / 2 < spread < 1.5 * claimed, (spread, claimed)
 
 
 def test_cells_without_enough_data_are_unmeasured_and_say_why() -> None:

@@ -146,3 +146,44 @@ def test_moments_of_an_ideal_split_and_of_profiles() -> None:
     brighter = S.moments(ideal * np.array([1.3, 0.8])[:, None, None], c / 2 + 2.5)
     for attr in ("cx", "gap", "size", "efficiency", "profile"):  # the views' gains cancel from every moment
         assert float(getattr(brighter, attr)) == pytest.approx(float(getattr(m, attr)), abs=1e-9)
+
+
+def test_a_focus_error_that_scales_with_each_pair_is_read_at_the_mean_pair() -> None:
+    """A relative focus error moves each pair's CoC by ``(1/k - 1)`` times its CoC at infinity, so pairs focused near
+    shift more; far background (large CoC behind focus) comes mostly from them. With the pairs' scales the signature
+    reads the shift at the mean pair; a constant offset would read the spread between bins as a growth with |CoC|."""
+    scale = np.array([0.5, 0.5, 0.5, 1.5, 1.5, 1.5])  # per pair: its CoC at infinity (any unit)
+    beta = 0.5  # px of CoC per unit of scale
+    keys = [(b, -1) for b in range(-12, 13) if b != 0 and abs(A.FINE.centre(b)) <= 15]
+    cells = {}
+    for key in keys:
+        grid = A.Grid.of(key)
+        c = A.FINE.centre(key[0])
+        near = 0.9 if c < 4.0 else 0.1  # far background (CoC >= 4 px behind focus) mostly from the pairs focused near
+        pixels = np.where(scale < 1, 1000.0 * near, 1000.0 * (1 - near))
+        s_cell = float((pixels * scale).sum() / pixels.sum())
+        cell = A.Cell(key[0], key[1], grid, np.arange(P), pixels, pixels * c, np.full((P, 3), 500.0))
+        for name, cc in (("measured", c + beta * s_cell), ("model", c)):
+            k = np.stack([kernel(grid.h, cc, side) for side in (-1, +1)])
+            k = k.reshape(2, grid.side, grid.bs, grid.side, grid.bs).mean((2, 4))
+            cell.kernels[name] = np.repeat(k[:, None], 3, axis=1)
+            cell.influence[name] = np.zeros((P, 2, 3, grid.side, grid.side))
+            cell.dc[name] = np.full((P, 2, 3), 250.0)
+            cell.noise_sd[name] = np.full((2, 3), 1e-4)
+        cell.factor = torch.eye(grid.n, dtype=torch.float64).expand(3, grid.n, grid.n).contiguous() * 30.0
+        cells[key] = cell
+    weights = np.random.default_rng(0).multinomial(P, np.full(P, 1 / P), size=60).astype(np.float64)
+    atlas = A.Atlas(("measured", "model"), cells, [f"p{i}" for i in range(P)], weights)
+    p = S.Pairing(atlas, "measured", "model", pair_scales={"coc_at_infinity_px": scale, "aperture_px": np.ones(P)})
+    mean_scale = sum(float((c.pixels * scale).sum()) for c in cells.values()) / sum(float(c.pixels.sum()) for c in cells.values())
+    f = S.focus_signature(p)
+    assert f.values[0].value == pytest.approx(beta * mean_scale, abs=0.08), f.values[0].value  # 0.39; a constant offset reads 0.19
+    assert not S.chromatic_signature(p, True).differs(0.05)  # the same shift in every channel is no colour error
+
+
+def test_the_gap_slope_is_the_curves_own_and_missing_where_flat() -> None:
+    c = np.array([-6.0, -3.0, -1.0, -0.4, 0.3, 1.0, 3.0, 6.0])
+    gap = np.where(np.abs(c) < 0.8, 0.0, 0.4 * c)
+    slope = S.gap_slope(c[::-1], gap[::-1])[::-1]  # any order
+    assert slope[0] == pytest.approx(0.4) and slope[-1] == pytest.approx(0.4)
+    assert np.isnan(slope[3]) and np.isnan(slope[4])  # flat near focus: says nothing about where the gap vanishes
