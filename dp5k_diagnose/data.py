@@ -219,30 +219,6 @@ DEFAULT_FIT_PAIRS = 8
 """Fit pairs of ``--fit-pairs auto`` on a larger train split."""
 
 
-def spread_choice(conditions: Sequence[tuple[float, float]], k: int) -> list[int]:
-    """Indices of ``k`` of the capture ``conditions`` ((focus distance mm, f-number) per pair, in a random order) that
-    span them: farthest-point sampling in (focus in dioptres, log f-number), each scaled to its range, the first
-    condition first, ties to the earlier one.
-
-    The fit must see the nearest and the farthest focus and every aperture of the train split: a component fitted at
-    one focus distance extrapolates to another by its form (a relative focus error and one in dioptres agree at one
-    distance), and a random choice can leave out the one pair focused near."""
-    n = len(conditions)
-    if k >= n:
-        return list(range(n))
-    x = np.array([[1000.0 / max(F, 1e-9), np.log(max(N, 1e-9))] for F, N in conditions], dtype=np.float64)
-    span = x.max(axis=0) - x.min(axis=0)
-    x = x[:, span > 0] / span[span > 0] if (span > 0).any() else np.zeros((n, 1))
-    chosen = [0]
-    dist = np.linalg.norm(x - x[0], axis=1)
-    while len(chosen) < k:
-        dist[chosen] = -1.0
-        nxt = int(np.argmax(dist))  # the first of the farthest
-        chosen.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(x - x[nxt], axis=1))
-    return chosen
-
-
 def auto_fit_pairs(dataset: str | Path) -> int | None:
     """``--fit-pairs auto``: None (every train pair) where train has at most :data:`SMALL_TRAIN_PAIRS` pairs, else
     :data:`DEFAULT_FIT_PAIRS`."""
@@ -304,8 +280,7 @@ def read_input(dataset: str | Path, fit_pairs: int | None, crop_px: int, crops_p
     held = test or val or train
     rng = np.random.default_rng(seed)
     order = [train[i] for i in rng.permutation(len(train))]
-    conditions = [(reader.params(pid).focus_distance_mm, reader.params(pid).f_number) for pid in order]
-    fit_ids = sorted(order[i] for i in spread_choice(conditions, len(order) if fit_pairs is None else fit_pairs))
+    fit_ids = sorted(order[: len(order) if fit_pairs is None else fit_pairs])
     every = sorted(set(train) | set(val) | set(test))
     pairs = {pid: reader.load(pid) for pid in every}
     full = {pid: full_samples([pairs[pid]])[0] for pid in every}

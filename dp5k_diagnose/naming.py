@@ -13,8 +13,8 @@ The measurement decides, the fit confirms (docs/diagnose.md, "Naming"):
    the component that stands for it does not predict better.
 4. The extended model is rendered again on every pair, its atlas re-measured (the measured side is not measured
    again) and every signature read anew: a cause's side effects (the blur of a resampled shift, the brightness
-   of a moved split) leave the other signatures with it. Back to 2 until no candidate is left; an effect that was
-   a candidate in an earlier round stays one for one more fit on top of the new cause (:data:`MAX_TRIES`).
+   of a moved split) leave the other signatures with it. Back to 2 until no candidate is left; a candidate that
+   gained but less than the one named stays one for the next round, on top of it (:data:`MAX_TRIES`).
 5. Each named cause is then checked given the others: the model without it, refitted, against the full one on
    the held-out pairs. A cause that another explains (a moved split carries a gain ramp) is dropped and reported
    as that cause's look-alike, with the capture that would tell them apart.
@@ -230,11 +230,10 @@ MAX_TRIES = 2
 """A candidate that did not gain is fitted in at most this many rounds before it is left a suspect: a cause can mask
 another until it is in the model (a bright rim's gain is 0.05 dB beside an unmodelled 5 dB gain ramp, and a
 field-varying PSF fitted before the ramp tries to carry the ramp and loses). A candidate that gained but lost to a
-better one is fitted again in the next round, on top of it. Either is fitted again even where the model with the
-cause just named left its signature inside its interval: a look-alike can carry part of a cause in its fit and the
-rest in the signature's noise (a front/back asymmetry's spherical term shifts the CoC as a focus error does, and
-beside a bright rim it gained 1.6 dB to the focus error's 0.8; a misregistration that shifts the views apart moves
-the L-R gap as a focus error does). The check given the others then drops whichever of the two the other explains."""
+better one is fitted again in the next round, on top of it, even where the model with the cause just named left its
+signature inside its interval: a look-alike can carry part of a cause in its fit and the rest in the signature's noise
+(a front/back asymmetry's spherical term shifts the CoC as a focus error does, and beside a bright rim it gained
+1.6 dB to the focus error's 0.8). The check given the others then drops whichever of the two the other explains."""
 
 
 @dataclass
@@ -258,7 +257,6 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
     steps: list[Step] = []
     fails: dict[str, int] = {}  # rounds in which each candidate did not gain
     lost: set[str] = set()  # candidates that gained in the last round they were fitted in, but less than the one named
-    tried: set[str] = set()  # every candidate fitted so far
     last: dict[str, _Trial] = {}
     trace: list[dict[str, Any]] = []
     while len(steps) < cfg.max_causes:
@@ -268,7 +266,7 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
             return fails.get(e, 0) < MAX_TRIES
 
         cands = sorted((s for e, s in sigs.items() if e != "noise" and e in cfg.effects and e not in {x.name for x in steps}
-                        and retry(e) and (s.differs(cfg.alpha) or e in lost or (steps and e in tried))), key=lambda s: -s.strength())
+                        and retry(e) and (s.differs(cfg.alpha) or e in lost)), key=lambda s: -s.strength())
         if not cands:
             break
         trials = []
@@ -281,7 +279,6 @@ def name_causes(base: BaseModel, first: dict[str, Signature], remeasure: Remeasu
             tr = _Trial(sig, ext, held.gain(model, ext), time.perf_counter() - t0)
             trials.append(tr)
             last[sig.effect] = tr
-            tried.add(sig.effect)
             if not confirmed(tr.gain):
                 fails[sig.effect] = fails.get(sig.effect, 0) + 1
         ok = [tr for tr in trials if confirmed(tr.gain)]

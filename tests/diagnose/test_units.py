@@ -321,20 +321,3 @@ def test_noise_is_nominal_against_the_model_that_explains_the_views() -> None:
     assert against_truth.ratio < against_base.ratio
 
 
-
-
-def test_the_fit_pairs_span_the_focus_distances_and_apertures() -> None:
-    """Farthest-point choice keeps the one pair focused near (a random 8 of 16 left it out and a relative focus
-    error fitted at 3.5 m predicted the pairs focused at 1.2 m 3 dB worse)."""
-    from dp5k_diagnose.data import spread_choice
-
-    focus = [3751, 4703, 3899, 2459, 652, 3449, 4455, 3717]
-    conditions = [(F, N) for F in focus for N in (2.0, 4.0)]
-    chosen = spread_choice(conditions, 8)
-    assert len(set(chosen)) == 8 and chosen[0] == 0
-    picked = [conditions[i] for i in chosen]
-    assert min(F for F, _ in picked) == 652 and max(F for F, _ in picked) == 4703
-    assert {N for _, N in picked} == {2.0, 4.0}
-    assert spread_choice(conditions, 20) == list(range(16))
-    same = spread_choice([(1000.0, 2.0)] * 5, 3)  # nothing to spread over: the first three (a random order upstream)
-    assert same == [0, 1, 2]
