@@ -33,6 +33,7 @@ Units: sizes and centroids in output px, CoC as its signed diameter in output px
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -212,8 +213,10 @@ def robust_se(boot: np.ndarray, axis: int = 0) -> np.ndarray | float:
     """1.4826 x the median absolute deviation of the finite values along ``axis`` (inf with fewer than 10)."""
     b = np.where(np.isfinite(boot), boot, np.nan)
     n = np.isfinite(b).sum(axis)
-    med = np.nanmedian(b, axis=axis, keepdims=True)
-    s = 1.4826 * np.nanmedian(np.abs(b - med), axis=axis)
+    with warnings.catch_warnings():  # a cell no resample measured is all NaN: its s is inf below, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(b, axis=axis, keepdims=True)
+        s = 1.4826 * np.nanmedian(np.abs(b - med), axis=axis)
     s = np.where(n >= 10, s, np.inf)
     return float(s) if np.ndim(s) == 0 else s
 
