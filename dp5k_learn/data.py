@@ -33,6 +33,24 @@ def _to_tensor(img: np.ndarray) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1) if img.ndim == 3 else img[None]))
 
 
+def draw_crop(valid: np.ndarray, crop: CropSpec | None, rng: np.random.Generator) -> tuple[int, int, int, int]:
+    """(y0, x0, h, w) px of a training crop of a pair whose depth-valid mask is ``valid`` (H, W): the whole pair when
+    ``crop`` is None or no smaller than it, else a square of ``crop.size_px`` (clipped to the pair) drawn until at
+    least ``crop.min_valid_fraction`` of it is valid, at most ``crop.tries`` times (the last draw is kept)."""
+    H, W = valid.shape
+    s = crop.size_px if crop is not None else 0
+    if not s or (s >= H and s >= W):
+        return 0, 0, H, W
+    h, w = min(s, H), min(s, W)
+    y0 = x0 = 0
+    for _ in range(max(1, crop.tries)):
+        y0 = int(rng.integers(0, H - h + 1))
+        x0 = int(rng.integers(0, W - w + 1))
+        if valid[y0 : y0 + h, x0 : x0 + w].mean() >= crop.min_valid_fraction:
+            break
+    return y0, x0, h, w
+
+
 class DPPairDataset(Dataset):
     """Items of one split: a dict of tensors for one (possibly cropped) pair.
 
@@ -88,15 +106,7 @@ class DPPairDataset(Dataset):
         rng = np.random.default_rng([self.seed, self.epoch, index])
         valid = pair.valid
         H, W = valid.shape
-        y0, x0, h, w = 0, 0, H, W
-        s = self.crop.size_px
-        if s and (s < H or s < W):
-            h, w = min(s, H), min(s, W)
-            for _ in range(max(1, self.crop.tries)):
-                y0 = int(rng.integers(0, H - h + 1))
-                x0 = int(rng.integers(0, W - w + 1))
-                if valid[y0 : y0 + h, x0 : x0 + w].mean() >= self.crop.min_valid_fraction:
-                    break
+        y0, x0, h, w = draw_crop(valid, self.crop, rng)
         sl = (slice(y0, y0 + h), slice(x0, x0 + w))
         flip = bool(self.crop.vflip and rng.random() < 0.5)
 

@@ -30,7 +30,7 @@ from torch.utils.data import Dataset
 
 from dp5k_common.dataset import DatasetReader, Pair
 from dp5k_learn.batch import DPBatch, frame_field
-from dp5k_learn.data import CropSpec
+from dp5k_learn.data import CropSpec, draw_crop
 
 from .config import AugmentConfig
 from .simulators.base import BaseModel
@@ -150,16 +150,7 @@ class PhysicalPairs(Dataset):
         pair = self.pair(self.ids[index % len(self.ids)])
         rng = np.random.default_rng([self.seed, self.epoch, index])
         valid = pair.valid
-        H, W = valid.shape
-        y0, x0, h, w = 0, 0, H, W
-        s = self.crop.size_px if self.crop is not None else 0
-        if s and (s < H or s < W):
-            h, w = min(s, H), min(s, W)
-            for _ in range(max(1, self.crop.tries)):  # type: ignore[union-attr]
-                y0 = int(rng.integers(0, H - h + 1))
-                x0 = int(rng.integers(0, W - w + 1))
-                if valid[y0 : y0 + h, x0 : x0 + w].mean() >= self.crop.min_valid_fraction:  # type: ignore[union-attr]
-                    break
+        y0, x0, h, w = draw_crop(valid, self.crop, rng)
         sl = (slice(y0, y0 + h), slice(x0, x0 + w))
         pl, pr = self._crop_views(pair, y0, x0, h, w)
         p = pair.params
