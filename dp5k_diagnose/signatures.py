@@ -448,10 +448,6 @@ FOCUS_RANGE_PX = (0.5, 22.0)
 """|CoC| range (px) of the bins whose front/back odd part measures a focus or colour error."""
 
 
-IDEAL_GAP_PER_COC = 4.0 / (3.0 * math.pi)
-"""The ideal split's L-R centroid gap per px of CoC (half discs of a flat disc: ``4 c / (3 pi)``)."""
-
-
 MIN_GAP_SLOPE = 0.05
 """The smallest local slope of the simulator's gap (px of gap per px of CoC) a cell must have to say where the
 disparity vanishes: below about a pixel of CoC both views' kernels fit in one pixel and the gap stays 0 whatever the
@@ -485,7 +481,7 @@ def _focus_from_gap(p: Pairing, channel: int | None = None, scale: str | None = 
     the split's efficiency moves ``g_odd``, a profile that differs between the sides ``alpha``. A ``g_even |c|`` term
     is left out: beside a ``d0`` that grows with the pairs' scale it is nearly collinear (on another renderer's clean
     set it swung beta to +0.31 px, 95 % interval [+0.10, +0.48]; without it +0.06 [-0.01, +0.10]). The gap is a first
-    moment, measured more precisely than a size. Dividing by the local slope, not the ideal ``4 / (3 pi)``, keeps the
+    moment, measured more precisely than a size. Dividing by the local slope, not the ideal split's ``4 / (3 pi)``, keeps the
     cells near focus, where the gap is flat (sub-pixel kernels) and very precisely 0 on both sides, from pulling beta
     to 0 (a focus error of -0.25 px read as -0.04).
 
