@@ -432,10 +432,16 @@ def seconds_table(rows: list[dict[str, Any]]) -> str:
         if secs:
             loads = [r["load_before"] for r in rs if "load_before" in r]
             rend_s = [r["render_seconds"] for r in rs if "render_seconds" in r]
+
+            # both atlases and the signatures (diagnose's "atlas" stage until it timed the measured atlas apart), and the
+            # measured atlas alone where timed apart
+            both = [t["atlas"] + t.get("signatures", 0.0) for t in (r.get("timings_s", {}) for r in rs) if "atlas" in t]
+            alone = [r["timings_s"]["atlas"] for r in rs if "signatures" in r.get("timings_s", {})]
             body.append([rend, str(k), str(len(secs)), f"{statistics.median(secs):.0f}", f"{max(secs):.0f}",
+                         f"{statistics.median(both):.1f}" if both else "-", f"{statistics.median(alone):.1f}" if alone else "-",
                          f"{statistics.median(rend_s):.0f}", f"{statistics.median(loads):.1f} ({min(loads):.1f}-{max(loads):.1f})"])
-    return md_table(["renderer", "planted effects", "sets", "diagnose s median", "max", "render s median",
-                     "load at start, median (range)"], body)
+    return md_table(["renderer", "planted effects", "sets", "diagnose s median", "max", "atlases + signatures s median",
+                     "of which the measured atlas", "render s median", "load at start, median (range)"], body)
 
 
 def confusion_table(rows: list[dict[str, Any]]) -> str:
