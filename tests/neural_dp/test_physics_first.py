@@ -253,3 +253,33 @@ def test_calibrated_pretraining_of_the_papers_network_learns_refocused_physical_
                                                                   "pretrain.simulator=base", "pretrain.epochs=1",
                                                                   "pretrain.variants=2"]))
     assert run.steps == 2 and (tmp_path / "run" / "pretrain" / "best.pt").is_file()
+
+
+def _pair_sums(d: np.ndarray, e: np.ndarray) -> tuple[float, float, float]:
+    return float((d * e).sum()), float((d * d).sum()), float((e * e).sum())
+
+
+def test_the_correction_is_kept_only_where_it_predicts_pairs_it_was_not_fitted_on() -> None:
+    from neural_dp.simulators.neural import cross_validated_scale
+
+    rng = np.random.default_rng(3)
+    d = {p: rng.standard_normal(500) for p in "abcd"}  # the network's correction of the physical views, per pair
+    # the measured error is half the correction on every pair: it generalises, the least-squares scale (~0.5) is kept
+    sums = {p: _pair_sums(d[p], 0.5 * d[p] + 0.1 * rng.standard_normal(500)) for p in d}
+    a, gain = cross_validated_scale(*({p: s[k] for p, s in sums.items()} for k in range(3)))
+    assert 0.45 < a < 0.55 and gain > 0.5
+    # half the pairs want it, half want its opposite: fitted on the others, it makes each pair worse
+    sums = {p: _pair_sums(d[p], (0.5 if p in "ab" else -0.4) * d[p]) for p in d}
+    num, den, sse = ({p: s[k] for p, s in sums.items()} for k in range(3))
+    a, gain = cross_validated_scale(num, den, sse)
+    assert a == 0.0 and gain < 0
+    # the held-out change is each pair's squared error at the others' scale, computed directly
+    change = 0.0
+    for p in d:
+        a_p = min(1.0, max(0.0, sum(num[q] for q in d if q != p) / sum(den[q] for q in d if q != p)))
+        e = (0.5 if p in "ab" else -0.4) * d[p]
+        change += float(((e - a_p * d[p]) ** 2).sum() - (e**2).sum())
+    assert gain == pytest.approx(-change / sum(sse.values()))
+    # one pair: nothing to hold out, the least-squares scale is kept
+    a, gain = cross_validated_scale({"a": num["a"]}, {"a": den["a"]}, {"a": sse["a"]})
+    assert a == pytest.approx(min(1.0, num["a"] / den["a"])) and gain == 0.0
