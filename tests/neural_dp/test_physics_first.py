@@ -255,31 +255,39 @@ def test_calibrated_pretraining_of_the_papers_network_learns_refocused_physical_
     assert run.steps == 2 and (tmp_path / "run" / "pretrain" / "best.pt").is_file()
 
 
-def _pair_sums(d: np.ndarray, e: np.ndarray) -> tuple[float, float, float]:
-    return float((d * e).sum()), float((d * d).sum()), float((e * e).sum())
+def _unit_sums(d: dict, e: dict) -> tuple[dict, dict, dict]:
+    return ({u: float((d[u] * e[u]).sum()) for u in d}, {u: float((d[u] * d[u]).sum()) for u in d},
+            {u: float((e[u] * e[u]).sum()) for u in d})
 
 
-def test_the_correction_is_kept_only_where_it_predicts_pairs_it_was_not_fitted_on() -> None:
+def test_the_correction_is_kept_only_where_it_predicts_data_it_was_not_fitted_on() -> None:
     from neural_dp.simulators.neural import cross_validated_scale
 
     rng = np.random.default_rng(3)
-    d = {p: rng.standard_normal(500) for p in "abcd"}  # the network's correction of the physical views, per pair
-    # the measured error is half the correction on every pair: it generalises, the least-squares scale (~0.5) is kept
-    sums = {p: _pair_sums(d[p], 0.5 * d[p] + 0.1 * rng.standard_normal(500)) for p in d}
-    a, gain = cross_validated_scale(*({p: s[k] for p, s in sums.items()} for k in range(3)))
-    assert 0.45 < a < 0.55 and gain > 0.5
-    # half the pairs want it, half want its opposite: fitted on the others, it makes each pair worse
-    sums = {p: _pair_sums(d[p], (0.5 if p in "ab" else -0.4) * d[p]) for p in d}
-    num, den, sse = ({p: s[k] for p, s in sums.items()} for k in range(3))
-    a, gain = cross_validated_scale(num, den, sse)
-    assert a == 0.0 and gain < 0
-    # the held-out change is each pair's squared error at the others' scale, computed directly
+    units = [(p, k) for p in "abcd" for k in range(4)]  # (pair, vertical strip)
+    d = {u: rng.standard_normal(200) for u in units}  # the network's correction of the physical views
+    # the measured error is half the correction everywhere: it generalises, the least-squares scale (~0.5) is kept
+    num, den, sse = _unit_sums(d, {u: 0.5 * d[u] + 0.1 * rng.standard_normal(200) for u in units})
+    a, gains = cross_validated_scale(num, den, sse)
+    assert 0.45 < a < 0.55 and gains["pairs"] > 0.5 and gains["strips"] > 0.5
+    # it helps a lot in strip 1 of every pair and harms the rest: on the crops it lowers the squared error (a > 0 by
+    # least squares), every pair looks alike (leaving a pair out keeps it), but fitted without strip 1 it is 0 and
+    # fitted with it, it harms the strip left out: the physical model is kept
+    big = {u: (3.0 if u[1] == 1 else 1.0) * d[u] for u in units}
+    e = {u: (0.8 if u[1] == 1 else -0.3) * big[u] for u in units}
+    num, den, sse = _unit_sums(big, e)
+    assert sum(num.values()) > 0
+    a, gains = cross_validated_scale(num, den, sse)
+    assert a == 0.0 and gains["pairs"] > 0 and gains["strips"] < 0
+    # the strips' held-out change, computed directly: each strip's squared error at the others' scale
     change = 0.0
-    for p in d:
-        a_p = min(1.0, max(0.0, sum(num[q] for q in d if q != p) / sum(den[q] for q in d if q != p)))
-        e = (0.5 if p in "ab" else -0.4) * d[p]
-        change += float(((e - a_p * d[p]) ** 2).sum() - (e**2).sum())
-    assert gain == pytest.approx(-change / sum(sse.values()))
-    # one pair: nothing to hold out, the least-squares scale is kept
-    a, gain = cross_validated_scale({"a": num["a"]}, {"a": den["a"]}, {"a": sse["a"]})
-    assert a == pytest.approx(min(1.0, num["a"] / den["a"])) and gain == 0.0
+    for k in range(4):
+        held = [u for u in units if u[1] == k]
+        rest = [u for u in units if u[1] != k]
+        a_k = min(1.0, max(0.0, sum(num[u] for u in rest) / sum(den[u] for u in rest)))
+        change += sum(float(((e[u] - a_k * big[u]) ** 2).sum() - (e[u] ** 2).sum()) for u in held)
+    assert gains["strips"] == pytest.approx(-change / sum(sse.values()))
+    # one pair, one strip: nothing to hold out, the least-squares scale is kept
+    u = ("a", 0)
+    a, gains = cross_validated_scale({u: num[u]}, {u: den[u]}, {u: sse[u]})
+    assert a == pytest.approx(min(1.0, max(0.0, num[u] / den[u]))) and gains == {}
