@@ -319,18 +319,13 @@ CHECK_LM_ITERS = 3
 
 def check_given_others(naming: Naming, fit: Sequence[Sample], held: HeldOut, cfg: DiagnoseConfig) -> None:
     """Step 5: each cause's held-out gain given the others; while one's interval does not lie above 0, the weakest
-    is dropped (a look-alike of the cause whose model explains it) and the rest are refitted and checked again.
-
-    The model without the last cause named is the step before it, fitted already (its given-others gain is its step
-    gain); the others are refitted from the full model's values."""
+    is dropped (a look-alike of the cause whose model explains it) and the rest are refitted and checked again."""
     while True:
         model = naming.model
         gains: dict[str, dict[str, Any]] = {}
         models: dict[str, BaseModel] = {}
-        fitted = ({naming.steps[-1].name: naming.steps[-2].model}
-                  if len(naming.steps) > 1 and model is naming.steps[-1].model else {})
         for s in naming.steps:  # started at the full model's values: a few iterations reach the refit
-            models[s.name] = fitted[s.name] if s.name in fitted else refit(without(model, s.name), fit, CHECK_LM_ITERS)
+            models[s.name] = refit(without(model, s.name), fit, CHECK_LM_ITERS)
             gains[s.name] = held.gain(models[s.name], model)
         weak = [n for n, g in gains.items() if not confirmed(g)]
         if not weak:
