@@ -38,10 +38,9 @@ def draw_crop(valid: np.ndarray, crop: CropSpec | None, rng: np.random.Generator
     ``crop`` is None or no smaller than it, else a square of ``crop.size_px`` (clipped to the pair) drawn until at
     least ``crop.min_valid_fraction`` of it is valid, at most ``crop.tries`` times (the last draw is kept)."""
     H, W = valid.shape
-    s = crop.size_px if crop is not None else 0
-    if not s or (s >= H and s >= W):
+    if crop is None or not crop.size_px or (crop.size_px >= H and crop.size_px >= W):
         return 0, 0, H, W
-    h, w = min(s, H), min(s, W)
+    h, w = min(crop.size_px, H), min(crop.size_px, W)
     y0 = x0 = 0
     for _ in range(max(1, crop.tries)):
         y0 = int(rng.integers(0, H - h + 1))

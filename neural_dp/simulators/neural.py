@@ -81,7 +81,7 @@ def cross_validated_scale(num: dict[Unit, float], den: dict[Unit, float], base_s
     scale ``a`` a group's squared error changes by :math:`a^2 den_G - 2 a\, num_G`. Two cross-validations, each
     scoring every group at the scale fitted on the others: leave one **pair** out, and leave one **strip** out (the
     same strip of every pair: a correction that helps in one part of the frame and harms the rest does not carry
-    to the part it was not fitted on, nor to the frame's border a crop leaves out). Where either sums to no drop of
+    to the parts it was not fitted on, such as those a crop leaves out). Where either sums to no drop of
     the held-out squared error, ``a`` is 0: the physical model.
 
     Returns:
@@ -194,11 +194,13 @@ class NeuralDPSimulator(DPSimulator):
                 for out, p, target in ((left, pl, b.left), (right, pr, b.right)):
                     d = (out - p) * m
                     e = (target - p) * m
-                    sums = [t.sum((1, 2)) for t in (d * e, d * d, e * e)]  # (B, W) per column
-                    for k, cols in enumerate(torch.arange(d.shape[-1]).tensor_split(CV_STRIPS)):
-                        for i, pid in enumerate(ids):
-                            for acc, t in zip((num, den, base_sse), sums):
-                                acc[(pid, k)] = acc.get((pid, k), 0.0) + float(t[i, cols].sum())
+                    # (3, B, CV_STRIPS): sum d e, sum d^2, sum e^2 over each vertical strip of each item
+                    strips = torch.stack([torch.stack([c.sum((1, 2, 3)) for c in t.tensor_split(CV_STRIPS, dim=-1)], -1)
+                                          for t in (d * e, d * d, e * e)]).tolist()
+                    for acc, per_item in zip((num, den, base_sse), strips):
+                        for pid, row in zip(ids, per_item):
+                            for k, v in enumerate(row):
+                                acc[(pid, k)] = acc.get((pid, k), 0.0) + v
         self.train(was_training)
         self.correction_scale, gains = cross_validated_scale(num, den, base_sse)
         return {**fitted, "correction_scale": self.correction_scale, **{f"correction_cv_gain_{k}": v for k, v in gains.items()}}
